@@ -1,0 +1,163 @@
+//! File helpers shared by every crate: atomic writes, never-overwritten dated folders, hashes.
+//!
+//! Every artifact KIWI writes goes through [`write_atomic_with`]: the content lands in a
+//! temporary file in the same folder, is flushed to disk, then renamed over the target, so a
+//! crash or a full disk never leaves a half-written file behind.
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use sha2::{Digest, Sha256};
+
+use crate::error::{CoreError, Result};
+
+/// How many `-N` suffixes [`create_dated_dir`] tries before giving up (a unit certified more
+/// than this many times on one day points at a script in a loop).
+const MAX_SAME_DAY_FOLDERS: u32 = 999;
+
+/// Write a file atomically: `fill` writes the content into a temporary file next to `path`,
+/// which is synced and renamed onto `path` only if `fill` succeeds.
+pub fn write_atomic_with<F>(path: &Path, fill: F) -> Result<()>
+where
+    F: FnOnce(&mut std::fs::File) -> std::io::Result<()>,
+{
+    let io_err = |action, source| CoreError::Io {
+        action,
+        path: path.to_path_buf(),
+        source,
+    };
+    let parent = path
+        .parent()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    std::fs::create_dir_all(parent).map_err(|e| io_err("creating the folder of", e))?;
+    let file_name = path
+        .file_name()
+        .map_or_else(|| "out".into(), |n| n.to_string_lossy().into_owned());
+    let tmp = parent.join(format!(".{file_name}.{}.tmp", std::process::id()));
+    let result = (|| {
+        let mut file = std::fs::File::create(&tmp)?;
+        fill(&mut file)?;
+        file.flush()?;
+        file.sync_all()?;
+        std::fs::rename(&tmp, path)
+    })();
+    if let Err(e) = result {
+        let _ = std::fs::remove_file(&tmp);
+        return Err(io_err("writing", e));
+    }
+    Ok(())
+}
+
+/// Write bytes to a file atomically.
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
+    write_atomic_with(path, |f| f.write_all(bytes))
+}
+
+/// Read a whole text file, naming it in the error.
+pub fn read_text(path: &Path) -> Result<String> {
+    std::fs::read_to_string(path).map_err(|source| CoreError::Io {
+        action: "reading",
+        path: path.to_path_buf(),
+        source,
+    })
+}
+
+/// Create `root/<date>` or, if that exists, `root/<date>-2`, `-3`, …, and return it.
+/// Creation is atomic (`create_dir` fails if the folder exists), so two processes certifying
+/// the same unit at once still get two folders and nothing is ever overwritten.
+pub fn create_dated_dir(root: &Path, date: &str) -> Result<PathBuf> {
+    std::fs::create_dir_all(root).map_err(|source| CoreError::Io {
+        action: "creating folder",
+        path: root.to_path_buf(),
+        source,
+    })?;
+    for n in 1..=MAX_SAME_DAY_FOLDERS {
+        let name = if n == 1 {
+            date.to_string()
+        } else {
+            format!("{date}-{n}")
+        };
+        let candidate = root.join(name);
+        match std::fs::create_dir(&candidate) {
+            Ok(()) => return Ok(candidate),
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {}
+            Err(source) => {
+                return Err(CoreError::Io {
+                    action: "creating folder",
+                    path: candidate,
+                    source,
+                });
+            }
+        }
+    }
+    Err(CoreError::WouldOverwrite {
+        path: root.join(date),
+        fix: format!("more than {MAX_SAME_DAY_FOLDERS} sets exist for this date; archive old ones"),
+    })
+}
+
+/// SHA-256 of a file's content as lowercase hex, for provenance records.
+pub fn sha256_file(path: &Path) -> Result<String> {
+    let mut file = std::fs::File::open(path).map_err(|source| CoreError::Io {
+        action: "opening",
+        path: path.to_path_buf(),
+        source,
+    })?;
+    let mut hasher = Sha256::new();
+    std::io::copy(&mut file, &mut hasher).map_err(|source| CoreError::Io {
+        action: "reading",
+        path: path.to_path_buf(),
+        source,
+    })?;
+    Ok(hex(&hasher.finalize()))
+}
+
+/// SHA-256 of bytes as lowercase hex.
+pub fn sha256_bytes(bytes: &[u8]) -> String {
+    hex(&Sha256::digest(bytes))
+}
+
+fn hex(bytes: &[u8]) -> String {
+    use std::fmt::Write as _;
+    bytes
+        .iter()
+        .fold(String::with_capacity(bytes.len() * 2), |mut s, b| {
+            let _ = write!(s, "{b:02x}");
+            s
+        })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn atomic_write_leaves_nothing_on_failure() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("a.json");
+        write_atomic(&path, b"first").unwrap();
+        let err = write_atomic_with(&path, |_| Err(std::io::Error::other("disk full")));
+        assert!(err.is_err());
+        assert_eq!(std::fs::read(&path).unwrap(), b"first");
+        let names: Vec<_> = std::fs::read_dir(dir.path()).unwrap().collect();
+        assert_eq!(names.len(), 1, "temporary file left behind");
+    }
+
+    #[test]
+    fn dated_dirs_are_never_reused() {
+        let dir = tempfile::tempdir().unwrap();
+        let a = create_dated_dir(dir.path(), "2026-11-22").unwrap();
+        let b = create_dated_dir(dir.path(), "2026-11-22").unwrap();
+        assert!(a.ends_with("2026-11-22"));
+        assert!(b.ends_with("2026-11-22-2"));
+    }
+
+    #[test]
+    fn hashes_are_stable() {
+        assert_eq!(
+            sha256_bytes(b"abc"),
+            "ba7816bf8f01cfea414140de5dae2223b00361a396177a9cb410ff61f20015ad"
+        );
+    }
+}

@@ -1,0 +1,484 @@
+//! Session and prepared-episode layouts: `session.toml`, and the folder structure ingest (or the
+//! simulator) writes and every stage reads.
+//!
+//! ```text
+//! session/
+//!   session.toml                    units per wrist, tools, head camera, episodes, map episode
+//!   units/<unit>/<date>/calibration.json
+//!   episodes/<episode>/
+//!     <camera>/                     left | right | head
+//!       meta.json                   camera model, unit, recording mode, lenses
+//!       imu.csv                     t,gx,gy,gz,ax,ay,az (s, rad/s, m/s²)
+//!       audio.wav
+//!       <lens>/                     front | rear (X5), main (GO 3)
+//!         frames.csv                t,file  (t in s on the camera clock, file relative to the lens folder)
+//!         frames/000000.png …
+//!     work/<stage>/                 stage outputs and their manifest
+//!     truth/                        simulator ground truth; never read by algorithms
+//! ```
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+
+use crate::error::{CoreError, Result};
+use crate::io::{read_text, write_atomic, write_atomic_with};
+
+/// The `session.toml` schema version this build reads.
+pub const SESSION_SCHEMA_VERSION: u32 = 1;
+/// The header of `frames.csv`.
+pub const FRAMES_CSV_HEADER: &str = "t,file";
+
+/// Which wrist a camera is on.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Side {
+    /// The operator's left wrist.
+    Left,
+    /// The operator's right wrist.
+    Right,
+}
+
+impl Side {
+    /// The camera folder name of this wrist in a prepared episode.
+    pub fn camera_name(self) -> &'static str {
+        match self {
+            Self::Left => "left",
+            Self::Right => "right",
+        }
+    }
+}
+
+/// The tool a wrist carries.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ToolKind {
+    /// The two-finger chopstick gripper (opening is an angle).
+    Chopstick,
+    /// The ALOHA-style parallel-jaw gripper (opening is a width).
+    ParallelJaw,
+    /// The bare-hand wrist cuff (no opening).
+    BareHand,
+}
+
+/// One wrist's camera unit and tool.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct WristConfig {
+    /// Unit id of the X5 on this wrist.
+    pub unit: String,
+    /// Folder of the unit's calibration set, relative to the session root.
+    pub calibration: PathBuf,
+    /// The tool on this wrist.
+    pub tool: ToolKind,
+}
+
+/// The optional head camera and the hat marker.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct HeadConfig {
+    /// Unit id of the head camera.
+    pub unit: String,
+    /// Folder of the unit's calibration set, relative to the session root.
+    pub calibration: PathBuf,
+    /// ArUco id of the hat marker.
+    pub marker_id: u32,
+    /// Side length of the hat marker's black square (m).
+    pub marker_size_m: f64,
+}
+
+/// One episode of the session.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct EpisodeConfig {
+    /// Episode name; its folder is `episodes/<name>`.
+    pub name: String,
+    /// Free-text description (the simulator writes its scenario name).
+    #[serde(default)]
+    pub description: String,
+}
+
+/// `session.toml`: one scene on one day.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Session {
+    /// Always [`SESSION_SCHEMA_VERSION`].
+    pub schema_version: u32,
+    /// Session name.
+    pub name: String,
+    /// The episode whose recordings build the maps.
+    pub map_episode: String,
+    /// Wrist cameras by side (`left`, `right`).
+    pub wrists: BTreeMap<Side, WristConfig>,
+    /// The head camera, if worn.
+    #[serde(default)]
+    pub head: Option<HeadConfig>,
+    /// Episodes in recording order.
+    pub episodes: Vec<EpisodeConfig>,
+}
+
+impl Session {
+    /// Parse and validate a `session.toml`.
+    pub fn load(path: &Path) -> Result<Self> {
+        let text = read_text(path)?;
+        let session: Self = toml::from_str(&text).map_err(|e| CoreError::Parse {
+            path: path.to_path_buf(),
+            format: "TOML",
+            field: e
+                .span()
+                .map_or_else(|| ".".into(), |s| format!("byte {}", s.start)),
+            message: e.message().to_string(),
+            fix: "see docs/conventions.md for the session.toml fields".into(),
+        })?;
+        session.validate().map_err(|e| e.at_path(path))?;
+        Ok(session)
+    }
+
+    /// Validate and write atomically.
+    pub fn save(&self, path: &Path) -> Result<()> {
+        self.validate().map_err(|e| e.at_path(path))?;
+        let text = toml::to_string_pretty(self).map_err(|e| {
+            CoreError::invalid_value(
+                "session",
+                "serializable values",
+                e.to_string(),
+                "fix the session",
+            )
+        })?;
+        write_atomic(path, text.as_bytes())
+    }
+
+    /// Check the fields' consistency (not the files: see [`Session::check_files`]).
+    pub fn validate(&self) -> Result<()> {
+        if self.schema_version != SESSION_SCHEMA_VERSION {
+            return Err(CoreError::invalid_value(
+                "schema_version",
+                SESSION_SCHEMA_VERSION.to_string(),
+                self.schema_version.to_string(),
+                "write the current schema version",
+            ));
+        }
+        if self.wrists.is_empty() {
+            return Err(CoreError::invalid_value(
+                "wrists",
+                "at least one of wrists.left, wrists.right",
+                "none",
+                "add a [wrists.left] table",
+            ));
+        }
+        for (i, ep) in self.episodes.iter().enumerate() {
+            if ep.name.is_empty() || ep.name.contains(['/', '\\']) || ep.name.starts_with('.') {
+                return Err(CoreError::invalid_value(
+                    format!("episodes[{i}].name"),
+                    "a folder name without path separators",
+                    format!("`{}`", ep.name),
+                    "rename the episode",
+                ));
+            }
+            if self.episodes[..i].iter().any(|e| e.name == ep.name) {
+                return Err(CoreError::invalid_value(
+                    format!("episodes[{i}].name"),
+                    "a unique episode name",
+                    format!("`{}` twice", ep.name),
+                    "rename one",
+                ));
+            }
+        }
+        if !self.episodes.iter().any(|e| e.name == self.map_episode) {
+            return Err(CoreError::invalid_value(
+                "map_episode",
+                "the name of one of the episodes",
+                format!("`{}`", self.map_episode),
+                "name the episode whose recordings build the maps",
+            ));
+        }
+        if let Some(h) = &self.head
+            && !(h.marker_size_m.is_finite() && h.marker_size_m > 0.0 && h.marker_size_m < 1.0)
+        {
+            return Err(CoreError::invalid_value(
+                "head.marker_size_m",
+                "a side length in metres, in (0, 1)",
+                h.marker_size_m.to_string(),
+                "marker sizes are in metres (58 mm = 0.058)",
+            ));
+        }
+        Ok(())
+    }
+
+    /// Check that every calibration set and episode folder named exists under `root`.
+    pub fn check_files(&self, root: &Path) -> Result<()> {
+        let mut calibrations: Vec<&Path> = self
+            .wrists
+            .values()
+            .map(|w| w.calibration.as_path())
+            .collect();
+        if let Some(h) = &self.head {
+            calibrations.push(&h.calibration);
+        }
+        for c in calibrations {
+            let file = root.join(c).join("calibration.json");
+            if !file.is_file() {
+                return Err(CoreError::Missing { path: file, fix: "certify the unit with `kiwi-calib certify` or fix the calibration path in session.toml".into() });
+            }
+        }
+        for ep in &self.episodes {
+            let dir = self.episode_dir(root, &ep.name);
+            if !dir.is_dir() {
+                return Err(CoreError::Missing {
+                    path: dir,
+                    fix: "ingest the episode's recordings, or remove it from session.toml".into(),
+                });
+            }
+        }
+        Ok(())
+    }
+
+    /// The folder of an episode.
+    pub fn episode_dir(&self, root: &Path, name: &str) -> PathBuf {
+        root.join("episodes").join(name)
+    }
+
+    /// Camera folder names this session records: `left`, `right`, and `head` if worn.
+    pub fn camera_names(&self) -> Vec<&'static str> {
+        let mut names: Vec<&'static str> = self.wrists.keys().map(|s| s.camera_name()).collect();
+        if self.head.is_some() {
+            names.push("head");
+        }
+        names
+    }
+}
+
+/// `meta.json` of one camera in a prepared episode.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CameraMeta {
+    /// Camera folder name (`left`, `right`, `head`).
+    pub camera: String,
+    /// Unit id of the physical camera.
+    pub unit_id: String,
+    /// Camera product (`Insta360 X5`, `Insta360 GO 3`).
+    pub camera_model: String,
+    /// Recording mode name (matches the unit artifact's recording modes).
+    pub mode: String,
+    /// Nominal frame rate (Hz).
+    pub fps: f64,
+    /// Lens folders present (`front`, `rear` or `main`).
+    pub lenses: Vec<String>,
+    /// Audio sample rate (Hz).
+    pub audio_rate_hz: u32,
+    /// Where the recording came from (original file names, or `kiwi-sim`).
+    #[serde(default)]
+    pub source: String,
+}
+
+/// One row of `frames.csv`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FrameRecord {
+    /// Exposure time (s) on the camera clock (middle of the exposure, first row for rolling shutter).
+    pub t: f64,
+    /// Image file, relative to the lens folder.
+    pub file: String,
+}
+
+/// Read and validate `frames.csv` (strictly increasing finite times, non-empty file names).
+pub fn read_frames_csv(path: &Path) -> Result<Vec<FrameRecord>> {
+    let mut reader = csv::ReaderBuilder::new()
+        .has_headers(true)
+        .from_path(path)
+        .map_err(|e| csv_error(path, &e))?;
+    let headers = reader.headers().map_err(|e| csv_error(path, &e))?.clone();
+    if headers.get(0) != Some("t") || headers.get(1) != Some("file") {
+        return Err(CoreError::Invalid {
+            path: path.to_path_buf(),
+            field: "line 1 (header)".into(),
+            expected: format!("`{FRAMES_CSV_HEADER}`"),
+            found: format!("`{}`", headers.iter().collect::<Vec<_>>().join(",")),
+            fix: "write frames.csv with columns t (s) and file".into(),
+        });
+    }
+    let mut frames: Vec<FrameRecord> = Vec::new();
+    for (i, row) in reader.records().enumerate() {
+        let line = i + 2;
+        let row = row.map_err(|e| csv_error(path, &e))?;
+        let invalid = |expected: &str, found: String| CoreError::Invalid {
+            path: path.to_path_buf(),
+            field: format!("line {line}"),
+            expected: expected.into(),
+            found,
+            fix: "repair the line".into(),
+        };
+        let t: f64 = row.get(0).unwrap_or("").trim().parse().map_err(|_| {
+            invalid(
+                "a time in seconds in column t",
+                format!("`{}`", row.get(0).unwrap_or("")),
+            )
+        })?;
+        let file = row.get(1).unwrap_or("").trim().to_string();
+        if !t.is_finite() {
+            return Err(invalid("a finite time", t.to_string()));
+        }
+        if file.is_empty() {
+            return Err(invalid(
+                "an image file name in column file",
+                "an empty value".into(),
+            ));
+        }
+        if let Some(prev) = frames.last()
+            && t <= prev.t
+        {
+            return Err(CoreError::Invalid {
+                path: path.to_path_buf(),
+                field: format!("line {line}, column t"),
+                expected: format!("a time after the previous {} s", prev.t),
+                found: format!("{t} s"),
+                fix:
+                    "frames must be sorted with no repeated times (was the recording concatenated?)"
+                        .into(),
+            });
+        }
+        frames.push(FrameRecord { t, file });
+    }
+    Ok(frames)
+}
+
+/// Write `frames.csv` atomically.
+pub fn write_frames_csv(path: &Path, frames: &[FrameRecord]) -> Result<()> {
+    use std::io::Write;
+    write_atomic_with(path, |f| {
+        let mut w = std::io::BufWriter::new(f);
+        writeln!(w, "{FRAMES_CSV_HEADER}")?;
+        for fr in frames {
+            writeln!(w, "{},{}", fr.t, fr.file)?;
+        }
+        w.flush()
+    })
+}
+
+fn csv_error(path: &Path, e: &csv::Error) -> CoreError {
+    let field = e
+        .position()
+        .map_or_else(|| ".".into(), |p| format!("line {}", p.line()));
+    CoreError::Parse {
+        path: path.to_path_buf(),
+        format: "CSV",
+        field,
+        message: e.to_string(),
+        fix: "repair the file".into(),
+    }
+}
+
+/// Paths inside one prepared episode.
+#[derive(Debug, Clone)]
+pub struct EpisodeLayout {
+    root: PathBuf,
+}
+
+impl EpisodeLayout {
+    /// The layout of the episode folder `root`.
+    pub fn new(root: impl Into<PathBuf>) -> Self {
+        Self { root: root.into() }
+    }
+    /// The episode folder.
+    pub fn root(&self) -> &Path {
+        &self.root
+    }
+    /// A camera's folder.
+    pub fn camera_dir(&self, camera: &str) -> PathBuf {
+        self.root.join(camera)
+    }
+    /// A camera's `meta.json`.
+    pub fn meta_json(&self, camera: &str) -> PathBuf {
+        self.camera_dir(camera).join("meta.json")
+    }
+    /// A camera's `imu.csv`.
+    pub fn imu_csv(&self, camera: &str) -> PathBuf {
+        self.camera_dir(camera).join("imu.csv")
+    }
+    /// A camera's `audio.wav`.
+    pub fn audio_wav(&self, camera: &str) -> PathBuf {
+        self.camera_dir(camera).join("audio.wav")
+    }
+    /// A lens folder.
+    pub fn lens_dir(&self, camera: &str, lens: &str) -> PathBuf {
+        self.camera_dir(camera).join(lens)
+    }
+    /// A lens's `frames.csv`.
+    pub fn frames_csv(&self, camera: &str, lens: &str) -> PathBuf {
+        self.lens_dir(camera, lens).join("frames.csv")
+    }
+    /// The image file of a frame record.
+    pub fn frame_path(&self, camera: &str, lens: &str, frame: &FrameRecord) -> PathBuf {
+        self.lens_dir(camera, lens).join(&frame.file)
+    }
+    /// Conventional image file name of frame `index` (relative to the lens folder).
+    pub fn frame_file_name(index: usize) -> String {
+        format!("frames/{index:06}.png")
+    }
+    /// A stage's work folder.
+    pub fn work_dir(&self, stage: &str) -> PathBuf {
+        self.root.join("work").join(stage)
+    }
+    /// The simulator's ground truth folder.
+    pub fn truth_dir(&self) -> PathBuf {
+        self.root.join("truth")
+    }
+
+    /// Read a camera's `meta.json`.
+    pub fn read_meta(&self, camera: &str) -> Result<CameraMeta> {
+        let path = self.meta_json(camera);
+        let text = read_text(&path)?;
+        serde_path_to_error::deserialize(&mut serde_json::Deserializer::from_str(&text)).map_err(
+            |e| CoreError::Parse {
+                path: path.clone(),
+                format: "JSON",
+                field: e.path().to_string(),
+                message: e.inner().to_string(),
+                fix: "see docs/conventions.md for meta.json".into(),
+            },
+        )
+    }
+
+    /// Write a camera's `meta.json` atomically.
+    pub fn write_meta(&self, meta: &CameraMeta) -> Result<()> {
+        let text = serde_json::to_string_pretty(meta).map_err(|e| {
+            CoreError::invalid_value(
+                "meta",
+                "serializable values",
+                e.to_string(),
+                "fix the metadata",
+            )
+        })?;
+        write_atomic(&self.meta_json(&meta.camera), text.as_bytes())
+    }
+
+    /// Check that a camera's files are complete and consistent: `meta.json`, `imu.csv`,
+    /// `audio.wav`, and per lens a valid `frames.csv` whose first and last images exist.
+    /// Returns the number of frames per lens.
+    pub fn validate_camera(&self, camera: &str) -> Result<Vec<(String, usize)>> {
+        let meta = self.read_meta(camera)?;
+        for file in [self.imu_csv(camera), self.audio_wav(camera)] {
+            if !file.is_file() {
+                return Err(CoreError::Missing {
+                    path: file,
+                    fix: "re-run ingest (or the simulator) for this camera".into(),
+                });
+            }
+        }
+        let mut counts = Vec::new();
+        for lens in &meta.lenses {
+            let frames = read_frames_csv(&self.frames_csv(camera, lens))?;
+            for fr in [frames.first(), frames.last()].into_iter().flatten() {
+                let p = self.frame_path(camera, lens, fr);
+                if !p.is_file() {
+                    return Err(CoreError::Missing {
+                        path: p,
+                        fix: "frames.csv names an image that is not there; re-run ingest".into(),
+                    });
+                }
+            }
+            counts.push((lens.clone(), frames.len()));
+        }
+        Ok(counts)
+    }
+}

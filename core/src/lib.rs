@@ -1,0 +1,24 @@
+//! `kiwi-core`: the vocabulary every KIWI crate shares.
+//!
+//! - [`geometry`]: SO(3)/SE(3) exponential and logarithm, Jacobians, interpolation, robust
+//!   rotation averaging, in the `a_from_b` convention.
+//! - [`camera`]: fisheye camera models (KB4, Double Sphere) on unit bearing vectors.
+//! - [`imu`]: IMU samples, validated series and the `imu.csv` format.
+//! - [`artifact`]: the unit calibration set, with [`kalibr`] and [`basalt`] exports.
+//! - [`layout`]: `session.toml` and the prepared-episode folder layout.
+//! - [`io`]: atomic writes, never-overwritten dated folders, hashes.
+//!
+//! This crate has no OpenCV, no image decoding and no command-line code, so it builds in
+//! seconds and everything else can depend on it. Conventions: `docs/conventions.md`.
+
+pub mod artifact;
+pub mod basalt;
+pub mod camera;
+pub mod error;
+pub mod geometry;
+pub mod imu;
+pub mod io;
+pub mod kalibr;
+pub mod layout;
+
+pub use error::{CoreError, Result};
