@@ -1,1 +1,10 @@
-//! placeholder
+//! `kiwi-backend`: reconstruct episodes recorded on certified units.
+//!
+//! Stage modules (sync, vision, metric, placement, fusion, gripper, head, ground, export,
+//! splat, report) arrive with their issues. Today: [`inspect`], which checks that a session and
+//! its prepared episodes are complete before any stage runs.
+
+pub mod error;
+pub mod inspect;
+
+pub use error::BackendError;

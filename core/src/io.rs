@@ -118,6 +118,44 @@ pub fn sha256_bytes(bytes: &[u8]) -> String {
     hex(&Sha256::digest(bytes))
 }
 
+/// Seconds since the Unix epoch → (year, month, day, hour, minute, second) in UTC
+/// (proleptic Gregorian calendar, days-from-civil inverted).
+fn civil_from_unix(seconds: u64) -> (i64, u32, u32, u32, u32, u32) {
+    let days = i64::try_from(seconds / 86_400).unwrap_or(0);
+    let rem = seconds % 86_400;
+    let z = days + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z.rem_euclid(146_097);
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let day = u32::try_from(doy - (153 * mp + 2) / 5 + 1).unwrap_or(1);
+    let month = u32::try_from(if mp < 10 { mp + 3 } else { mp - 9 }).unwrap_or(1);
+    let year = yoe + era * 400 + i64::from(month <= 2);
+    let h = u32::try_from(rem / 3600).unwrap_or(0);
+    let m = u32::try_from((rem % 3600) / 60).unwrap_or(0);
+    let s = u32::try_from(rem % 60).unwrap_or(0);
+    (year, month, day, h, m, s)
+}
+
+fn unix_now() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_secs())
+}
+
+/// The current UTC time as RFC 3339 (`2026-11-22T01:02:03Z`), for provenance records.
+pub fn utc_now_rfc3339() -> String {
+    let (y, mo, d, h, mi, s) = civil_from_unix(unix_now());
+    format!("{y:04}-{mo:02}-{d:02}T{h:02}:{mi:02}:{s:02}Z")
+}
+
+/// Today's UTC date as `YYYY-MM-DD`, the name of a new calibration folder.
+pub fn utc_today() -> String {
+    let (y, mo, d, ..) = civil_from_unix(unix_now());
+    format!("{y:04}-{mo:02}-{d:02}")
+}
+
 fn hex(bytes: &[u8]) -> String {
     use std::fmt::Write as _;
     bytes
@@ -151,6 +189,15 @@ mod tests {
         let b = create_dated_dir(dir.path(), "2026-11-22").unwrap();
         assert!(a.ends_with("2026-11-22"));
         assert!(b.ends_with("2026-11-22-2"));
+    }
+
+    #[test]
+    fn civil_dates_are_right() {
+        assert_eq!(civil_from_unix(0), (1970, 1, 1, 0, 0, 0));
+        // 2026-11-22T00:52:44Z
+        assert_eq!(civil_from_unix(1_795_308_764), (2026, 11, 22, 0, 52, 44));
+        // A leap day.
+        assert_eq!(civil_from_unix(951_782_400), (2000, 2, 29, 0, 0, 0));
     }
 
     #[test]

@@ -1,6 +1,8 @@
 //! Acceptance tests of the unit artifact: lossless JSON round trip, Kalibr export re-import,
 //! Basalt export, and one test per malformed input asserting the error names the field.
 
+#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
+
 use std::path::Path;
 
 use kiwi_core::artifact::*;
@@ -202,7 +204,7 @@ fn negative_focal_length_is_named() {
 #[test]
 fn non_orthonormal_rotation_is_named() {
     let err = load_modified(|v| {
-        v["lenses"][1]["cam_from_imu"]["rotation"][0][1] = serde_json::json!(0.3)
+        v["lenses"][1]["cam_from_imu"]["rotation"][0][1] = serde_json::json!(0.3);
     });
     assert_eq!(
         err.field(),

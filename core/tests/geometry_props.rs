@@ -1,6 +1,8 @@
 //! Property tests of the SO(3)/SE(3) maps: exp∘log identities (tiny angles and near π included)
 //! and the Jacobian identities, checked numerically.
 
+#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
+
 use kiwi_core::geometry::*;
 use nalgebra::{Matrix3, Matrix6, UnitQuaternion, Vector3};
 use proptest::prelude::*;

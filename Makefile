@@ -1,0 +1,48 @@
+# KIWI: the two commands a newcomer types are `make demo` and `make test`.
+SHELL := /bin/bash
+.DEFAULT_GOAL := help
+
+# System packages the build and the tools need (Debian names). `make deps` installs the missing ones.
+APT_PACKAGES := libopencv-dev clang libclang-dev libudev-dev pkg-config ffmpeg
+DEMO_OUT ?= demo-out
+DEMO_SEED ?= 7
+
+.PHONY: help deps build demo test bench clean
+
+help:
+	@echo "make demo   simulate a session and run KIWI on it (installs what it needs)"
+	@echo "make test   formatting, lints and every test"
+	@echo "make bench  benchmarks (release build)"
+	@echo "make deps   install the system packages the build needs (apt)"
+
+deps:
+	@missing=""; for p in $(APT_PACKAGES); do dpkg-query -W -f='$${Status}' $$p 2>/dev/null | grep -q "install ok installed" || missing="$$missing $$p"; done; \
+	if [ -n "$$missing" ]; then \
+	  echo "installing system packages:$$missing"; \
+	  SUDO=""; [ "$$(id -u)" = 0 ] || SUDO=sudo; \
+	  $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq --no-install-recommends $$missing; \
+	else echo "system packages present"; fi
+
+build: deps
+	cargo build --release --workspace --bins
+
+demo: build
+	rm -rf $(DEMO_OUT)
+	./target/release/kiwi-sim session --out $(DEMO_OUT)/session --seed $(DEMO_SEED) --scenario tabletop --episodes 2 --duration 2 --resolution 480
+	./target/release/kiwi inspect $(DEMO_OUT)/session/session.toml
+	@echo "demo session written to $(DEMO_OUT)/session (contact sheet: $(DEMO_OUT)/session/contact_sheet.png)"
+
+test: deps
+	cargo fmt --all -- --check
+	cargo clippy --workspace --all-targets -- -D warnings
+	@if command -v cargo-nextest >/dev/null 2>&1; then \
+	  cargo nextest run --workspace --no-fail-fast; \
+	else cargo test --workspace --no-fail-fast; fi
+	cargo test --workspace --doc
+
+bench: deps
+	cargo bench --workspace
+
+clean:
+	cargo clean
+	rm -rf $(DEMO_OUT)
