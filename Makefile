@@ -28,9 +28,10 @@ build: deps
 
 demo: build
 	rm -rf $(DEMO_OUT)
-	./target/release/kiwi-sim session --out $(DEMO_OUT)/session --seed $(DEMO_SEED) --scenario tabletop --episodes 2 --duration 2 --resolution 480
+	./target/release/kiwi-sim session --out $(DEMO_OUT)/session --seed $(DEMO_SEED) --scenario tabletop --episodes 1 --duration 2 --resolution 480 --rate 30
 	./target/release/kiwi inspect $(DEMO_OUT)/session/session.toml
-	@echo "demo session written to $(DEMO_OUT)/session (contact sheet: $(DEMO_OUT)/session/contact_sheet.png)"
+	./target/release/kiwi-sim contact-sheet --out $(DEMO_OUT)/contact_sheet.png --seed $(DEMO_SEED) --tile 256
+	@echo "demo: session in $(DEMO_OUT)/session (truth in its episodes' truth/ folders), contact sheet $(DEMO_OUT)/contact_sheet.png"
 
 test: deps
 	cargo fmt --all -- --check
@@ -41,7 +42,7 @@ test: deps
 	cargo test --workspace --doc
 
 bench: deps
-	cargo bench --workspace
+	cargo bench -p kiwi-fixtures --bench render
 
 clean:
 	cargo clean
