@@ -43,6 +43,7 @@ test: deps
 
 bench: deps
 	cargo bench -p kiwi-fixtures --bench render
+	cargo bench -p kiwi-backend --bench sync
 
 clean:
 	cargo clean

@@ -6,6 +6,14 @@ pub enum BackendError {
     /// An error from the shared core (file formats, validation).
     #[error(transparent)]
     Core(#[from] kiwi_core::CoreError),
+    /// An input file cannot be used.
+    #[error("{path}: {message}")]
+    Input {
+        /// The file.
+        path: std::path::PathBuf,
+        /// What is wrong and what to do.
+        message: String,
+    },
 }
 
 /// Shorthand for results in this crate.

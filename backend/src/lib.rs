@@ -2,9 +2,11 @@
 //!
 //! Stage modules (sync, vision, metric, placement, fusion, gripper, head, ground, export,
 //! splat, report) arrive with their issues. Today: [`inspect`], which checks that a session and
-//! its prepared episodes are complete before any stage runs.
+//! its prepared episodes are complete before any stage runs, and [`sync`], audio time
+//! synchronisation.
 
 pub mod error;
 pub mod inspect;
+pub mod sync;
 
 pub use error::BackendError;

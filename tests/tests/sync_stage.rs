@@ -1,0 +1,64 @@
+//! End to end: a simulated session's episode is synchronised by the `sync` stage, and every
+//! camera lands where the simulator put it (within the unmodelled acoustic propagation).
+
+#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
+
+use kiwi_backend::sync::CameraStatus;
+use kiwi_backend::sync::stage::{StageOutcome, run};
+use kiwi_fixtures::session::{SessionOptions, write_session};
+
+#[test]
+fn sync_stage_places_every_camera_of_a_simulated_episode() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut o = SessionOptions::new(dir.path().join("s"));
+    o.seed = 21;
+    o.resolution = 64;
+    o.rate_hz = 2.0;
+    o.duration_s = 40.0;
+    let summary = write_session(&o).unwrap();
+    let StageOutcome::Written(_, result) = run(&summary.session_toml, "ep000", false).unwrap()
+    else {
+        panic!("first run must write")
+    };
+    let truth: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(dir.path().join("s/episodes/ep000/truth/clocks.json")).unwrap(),
+    )
+    .unwrap();
+    let clock = |name: &str| {
+        let c = truth
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|c| c["camera"] == name)
+            .unwrap();
+        (
+            c["microphone"]["offset_s"].as_f64().unwrap(),
+            c["microphone"]["drift_ppm"].as_f64().unwrap() * 1e-6,
+            c["microphone"]["propagation_delay_s"].as_f64().unwrap(),
+        )
+    };
+    let (o0, d0, p0) = clock(&result.cameras[0].name);
+    for cam in &result.cameras[1..] {
+        assert_ne!(
+            cam.status,
+            CameraStatus::Unmatched,
+            "{}: {:?}",
+            cam.name,
+            result.pairs
+        );
+        let (o, _, p) = clock(&cam.name);
+        // The audio path adds the propagation difference, which audio alone cannot see.
+        let truth_offset = (o - o0) / (1.0 + d0) - (p - p0);
+        assert!(
+            (cam.offset_s - truth_offset).abs() < 1e-3,
+            "{}: {} vs {truth_offset}",
+            cam.name,
+            cam.offset_s
+        );
+    }
+    // A second run with unchanged inputs is skipped.
+    assert!(matches!(
+        run(&summary.session_toml, "ep000", false).unwrap(),
+        StageOutcome::UpToDate(_)
+    ));
+}
