@@ -28,7 +28,7 @@ build: deps
 
 demo: build
 	rm -rf $(DEMO_OUT)
-	./target/release/kiwi-sim session --out $(DEMO_OUT)/session --seed $(DEMO_SEED) --scenario tabletop --episodes 1 --duration 2 --resolution 480 --rate 30
+	./target/release/kiwi-sim session --out $(DEMO_OUT)/session --seed $(DEMO_SEED) --scenario tabletop --episodes 1 --duration 2 --resolution 480 --rate 29.97
 	./target/release/kiwi inspect $(DEMO_OUT)/session/session.toml
 	./target/release/kiwi-sim contact-sheet --out $(DEMO_OUT)/contact_sheet.png --seed $(DEMO_SEED) --tile 256
 	@echo "demo: session in $(DEMO_OUT)/session (truth in its episodes' truth/ folders), contact sheet $(DEMO_OUT)/contact_sheet.png"

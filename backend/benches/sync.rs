@@ -25,6 +25,7 @@ fn inputs(n: usize, minutes: f64) -> (Vec<SyncInput>, Vec<f64>) {
                 av_delay_s: 0.03,
                 gain: 1.0,
                 noise_sigma: 0.02,
+                video_to_device_s: 0.0,
             };
             let samples = mic.record(&source, minutes * 60.0, 5, &format!("c{k}"));
             SyncInput {

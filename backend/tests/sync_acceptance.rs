@@ -66,6 +66,7 @@ fn mic(offset_s: f64, drift_ppm: f64, av_delay_s: f64, gain: f64) -> Microphone 
         av_delay_s,
         gain,
         noise_sigma: 0.0,
+        video_to_device_s: 0.0,
     }
 }
 

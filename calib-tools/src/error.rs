@@ -6,6 +6,17 @@ pub enum CalibError {
     /// An error from the shared core (file formats, validation).
     #[error(transparent)]
     Core(#[from] kiwi_core::CoreError),
+    /// An input cannot be used; the message says what is wrong and what to do.
+    #[error("{path}: {message}")]
+    Input {
+        /// The file or folder.
+        path: std::path::PathBuf,
+        /// What is wrong and the fix.
+        message: String,
+    },
+    /// A bug in the calibration tools.
+    #[error("internal error: {0}")]
+    Internal(String),
 }
 
 /// Shorthand for results in this crate.

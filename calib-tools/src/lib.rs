@@ -2,9 +2,12 @@
 //!
 //! Modules grow with the calibration steps of ARCHITECTURE.md §5 (targets, intrinsics,
 //! imu_noise, cam_imu, av_delay, bench, certify). Today: [`export`], which turns a unit's
-//! `calibration.json` into the files other tools read, and imports Kalibr calibrations.
+//! `calibration.json` into the files other tools read and imports Kalibr calibrations;
+//! [`qr_clock`], the QR-clock rig's display video; [`av_delay`], the rig's analysis.
 
+pub mod av_delay;
 pub mod error;
 pub mod export;
+pub mod qr_clock;
 
 pub use error::CalibError;

@@ -21,6 +21,46 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
+    /// Render the QR-clock rig's display video: a QR code of the display clock every frame and
+    /// chirps on a known schedule (needs ffmpeg; `make deps` installs it).
+    QrClock {
+        /// The video to write (.mp4); the chirp schedule goes beside it (.chirps.csv).
+        #[arg(long)]
+        out: PathBuf,
+        /// Length in seconds.
+        #[arg(long, default_value_t = 120.0)]
+        duration: f64,
+        /// Display refresh rate of the video (Hz); play it full screen on a monitor of this rate.
+        #[arg(long, default_value_t = 60.0)]
+        fps: f64,
+        /// Print a JSON summary.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Measure each camera's A/V delay per recording mode from QR-clock rig captures, and the
+    /// optical offsets between cameras that filmed the rig together.
+    AvDelay {
+        /// A prepared camera folder of the rig (meta.json, audio.wav, <lens>/frames.csv); repeat.
+        #[arg(long = "capture", required = true)]
+        captures: Vec<PathBuf>,
+        /// The units' calibration.json (readout times for the row correction; the delays are
+        /// written into a copy in --out); repeat, matched by unit id.
+        #[arg(long = "calibration")]
+        calibrations: Vec<PathBuf>,
+        /// Display refresh rate (Hz).
+        #[arg(long, default_value_t = 60.0)]
+        refresh: f64,
+        /// Distance from the rig's speaker to a capture's camera: NAME=METRES (removes the sound's
+        /// travel time, 2.9 ms per metre).
+        #[arg(long = "speaker-distance", value_name = "NAME=METRES")]
+        speaker_distance: Vec<String>,
+        /// Report folder.
+        #[arg(long)]
+        out: PathBuf,
+        /// Print the full JSON result.
+        #[arg(long)]
+        json: bool,
+    },
     /// Check a unit's calibration.json and print a summary.
     Validate {
         /// The calibration.json to check.
@@ -65,6 +105,85 @@ fn main() -> Result<()> {
     let cli = Cli::parse();
     init_logging(cli.verbose);
     match cli.command {
+        Command::QrClock {
+            out,
+            duration,
+            fps,
+            json,
+        } => {
+            let written = kiwi_calib::qr_clock::write_qr_clock(&out, duration, fps)?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&written)?);
+            } else {
+                println!(
+                    "wrote {} ({} frames, {} chirps; schedule {})",
+                    written.video.display(),
+                    written.frames,
+                    written.chirps,
+                    written.schedule.display()
+                );
+            }
+        }
+        Command::AvDelay {
+            captures,
+            calibrations,
+            refresh,
+            speaker_distance,
+            out,
+            json,
+        } => {
+            let mut options = kiwi_calib::av_delay::AvDelayOptions {
+                refresh_hz: refresh,
+                speaker_distance_m: Vec::new(),
+                calibrations: Vec::new(),
+            };
+            for c in &calibrations {
+                options
+                    .calibrations
+                    .push((c.clone(), UnitCalibration::load(c)?));
+            }
+            for d in &speaker_distance {
+                let (name, metres) = d.split_once('=').ok_or_else(|| {
+                    anyhow::anyhow!("--speaker-distance {d}: expected NAME=METRES")
+                })?;
+                options.speaker_distance_m.push((
+                    name.to_string(),
+                    metres
+                        .parse()
+                        .with_context(|| format!("--speaker-distance {d}: expected metres"))?,
+                ));
+            }
+            let report = kiwi_calib::av_delay::analyse(&captures, &options)?;
+            let written = kiwi_calib::av_delay::write_outputs(&report, &options, &out)?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&report)?);
+            } else {
+                for m in &report.modes {
+                    println!(
+                        "{} {}: d = {:.3} ± {:.3} ms over {} capture(s), spread {:.3} ms",
+                        m.camera_model,
+                        m.mode,
+                        m.delay_s * 1e3,
+                        m.std_s * 1e3,
+                        m.repeats,
+                        m.spread_s * 1e3
+                    );
+                }
+                for o in &report.offsets {
+                    println!(
+                        "{} vs {}: offset {:.6} s ± {:.3} ms, drift {:+.2} ppm",
+                        o.capture,
+                        o.reference,
+                        o.offset_s,
+                        o.offset_std_s * 1e3,
+                        o.drift_ppm
+                    );
+                }
+                for p in written {
+                    println!("wrote {}", p.display());
+                }
+            }
+        }
         Command::Validate { calibration, json } => {
             let cal = UnitCalibration::load(&calibration)?;
             if json {

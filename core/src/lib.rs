@@ -7,18 +7,23 @@
 //! - [`artifact`]: the unit calibration set, with [`kalibr`] and [`basalt`] exports.
 //! - [`layout`]: `session.toml` and the prepared-episode folder layout.
 //! - [`io`]: atomic writes, never-overwritten dated folders, hashes.
+//! - [`audio`]: WAV decoding and resampling; [`fit`]: the robust line fit; [`rig`]: the QR-clock
+//!   rig's contract.
 //!
 //! This crate has no OpenCV, no image decoding and no command-line code, so it builds in
 //! seconds and everything else can depend on it. Conventions: `docs/conventions.md`.
 
 pub mod artifact;
+pub mod audio;
 pub mod basalt;
 pub mod camera;
 pub mod error;
+pub mod fit;
 pub mod geometry;
 pub mod imu;
 pub mod io;
 pub mod kalibr;
 pub mod layout;
+pub mod rig;
 
 pub use error::{CoreError, Result};

@@ -31,11 +31,12 @@ fn sync_stage_places_every_camera_of_a_simulated_episode() {
             .iter()
             .find(|c| c["camera"] == name)
             .unwrap();
-        (
-            c["microphone"]["offset_s"].as_f64().unwrap(),
-            c["microphone"]["drift_ppm"].as_f64().unwrap() * 1e-6,
-            c["microphone"]["propagation_delay_s"].as_f64().unwrap(),
-        )
+        // The video clock is the device clock less the primary lens's time shift.
+        let m = &c["microphone"];
+        let drift = m["drift_ppm"].as_f64().unwrap() * 1e-6;
+        let offset = m["offset_s"].as_f64().unwrap()
+            + m["video_to_device_s"].as_f64().unwrap() * (1.0 + drift);
+        (offset, drift, m["propagation_delay_s"].as_f64().unwrap())
     };
     let (o0, d0, p0) = clock(&result.cameras[0].name);
     for cam in &result.cameras[1..] {

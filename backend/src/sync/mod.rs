@@ -438,7 +438,7 @@ fn solve(pairs: &[PairEvidence], n: usize, delays: &[f64], drift_allowed: &[bool
     while let Some(k) = frontier.pop() {
         for p in &accepted {
             let (i, j) = p.indices;
-            let Some(fit) = p.fit else { continue };
+            let Some(fit) = &p.fit else { continue };
             // lag(a_j) ≈ intercept + slope a_j  ⇒  o_j ≈ o_i + intercept + d_j − d_i (small drift).
             let (from, to, sign) = if i == k {
                 (i, j, 1.0)
@@ -588,9 +588,9 @@ fn triangle_closures(pairs: &[PairEvidence], inputs: &[SyncInput]) -> Vec<Closur
         pairs
             .iter()
             .find(|p| p.indices == (i, j) && p.status == "accepted")
-            .and_then(|p| p.fit)
+            .and_then(|p| p.fit.as_ref())
     };
-    let lag_at = |f: LineFit, t: f64| f.intercept + f.slope * t;
+    let lag_at = |f: &LineFit, t: f64| f.at(t);
     let n = inputs.len();
     let mut out = Vec::new();
     for i in 0..n {

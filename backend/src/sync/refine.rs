@@ -98,110 +98,15 @@ pub fn window_lags(
     out
 }
 
-/// A robust straight-line fit `lag = intercept + slope · t_b`.
-#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
-pub struct LineFit {
-    /// Lag at `t_b = 0` (s).
-    pub intercept: f64,
-    /// d lag / d t_b (dimensionless; 1e-6 = 1 ppm).
-    pub slope: f64,
-    /// Standard error of the slope.
-    pub slope_std: f64,
-    /// Standard error of the lag at the middle of the data (s).
-    pub mid_std: f64,
-    /// Windows that count as inliers.
-    pub inliers: usize,
-    /// RMS of inlier residuals (s).
-    pub rms: f64,
-}
+pub use kiwi_core::fit::LineFit;
 
 /// Residual scale floor (s) for the robust fit: GCC-PHAT windows agree to a few µs.
 const FIT_SCALE_FLOOR_S: f64 = 20e-6;
-/// Huber threshold in robust standard deviations.
-const HUBER_K: f64 = 2.5;
 
-/// Fit a line (or, with `with_slope = false`, a constant) by iteratively reweighted least
-/// squares with Huber weights; windows beyond 5 robust sigmas are dropped.
+/// Fit `lag = intercept + slope · t_b` (or a constant, with `with_slope = false`) robustly
+/// through window lags, with the workspace's one robust line fit.
 pub fn robust_line(points: &[WindowLag], with_slope: bool) -> Option<LineFit> {
-    if points.len() < 2 {
-        return None;
-    }
-    let t_mid = points.iter().map(|p| p.t_b).sum::<f64>() / points.len() as f64;
-    let mut weights = vec![1.0; points.len()];
-    let (mut a, mut b) = (median(points.iter().map(|p| p.lag_s).collect()), 0.0);
-    let mut scale = FIT_SCALE_FLOOR_S;
-    for _ in 0..20 {
-        // Weighted LS on (t − t_mid).
-        let (mut sw, mut st, mut sy, mut stt, mut sty) = (0.0, 0.0, 0.0, 0.0, 0.0);
-        for (p, w) in points.iter().zip(&weights) {
-            let t = p.t_b - t_mid;
-            sw += w;
-            st += w * t;
-            sy += w * p.lag_s;
-            stt += w * t * t;
-            sty += w * t * p.lag_s;
-        }
-        if sw <= 0.0 {
-            return None;
-        }
-        let det = sw * stt - st * st;
-        if with_slope && det > 1e-12 {
-            b = (sw * sty - st * sy) / det;
-            a = (sy - b * st) / sw;
-        } else {
-            b = 0.0;
-            a = sy / sw;
-        }
-        let residuals: Vec<f64> = points
-            .iter()
-            .map(|p| p.lag_s - a - b * (p.t_b - t_mid))
-            .collect();
-        scale =
-            (1.4826 * median(residuals.iter().map(|r| r.abs()).collect())).max(FIT_SCALE_FLOOR_S);
-        for (w, r) in weights.iter_mut().zip(&residuals) {
-            let z = r.abs() / scale;
-            *w = if z > 5.0 {
-                0.0
-            } else if z > HUBER_K {
-                HUBER_K / z
-            } else {
-                1.0
-            };
-        }
-    }
-    let inliers: Vec<(f64, f64)> = points
-        .iter()
-        .zip(&weights)
-        .filter(|(_, w)| **w > 0.0)
-        .map(|(p, _)| (p.t_b - t_mid, p.lag_s - a - b * (p.t_b - t_mid)))
-        .collect();
-    let n = inliers.len();
-    if n < 2 {
-        return None;
-    }
-    let dof = (n as f64 - if with_slope { 2.0 } else { 1.0 }).max(1.0);
-    let rss: f64 = inliers.iter().map(|(_, r)| r * r).sum();
-    let sigma = (rss / dof).sqrt().max(1e-7);
-    let stt: f64 = inliers.iter().map(|(t, _)| t * t).sum();
-    Some(LineFit {
-        intercept: a - b * t_mid,
-        slope: b,
-        slope_std: if with_slope && stt > 0.0 {
-            sigma / stt.sqrt()
-        } else {
-            0.0
-        },
-        mid_std: sigma / (n as f64).sqrt(),
-        inliers: n,
-        rms: (rss / n as f64).sqrt().max(scale.min(0.0)),
-    })
-}
-
-fn median(mut v: Vec<f64>) -> f64 {
-    if v.is_empty() {
-        return 0.0;
-    }
-    let mid = v.len() / 2;
-    v.select_nth_unstable_by(mid, f64::total_cmp);
-    v[mid]
+    let x: Vec<f64> = points.iter().map(|p| p.t_b).collect();
+    let y: Vec<f64> = points.iter().map(|p| p.lag_s).collect();
+    kiwi_core::fit::robust_line(&x, &y, with_slope, FIT_SCALE_FLOOR_S)
 }
