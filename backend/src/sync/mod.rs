@@ -495,36 +495,33 @@ fn solve(pairs: &[PairEvidence], n: usize, delays: &[f64], drift_allowed: &[bool
                 let cj = (params[j].0, params[j].1, delays[j]);
                 let r = wl.lag_s - predicted_lag(wl.t_b, ci, cj);
                 let weight = if r.abs() > 3e-4 { 3e-4 / r.abs() } else { 1.0 };
-                // Jacobian of the prediction by numeric differentiation (tiny problem).
-                let mut jac = vec![(0usize, 0.0f64); 0];
-                for (cam, (oi, di)) in [(i, index[i]), (j, index[j])]
-                    .iter()
-                    .filter_map(|(c, ix)| ix.map(|x| (*c, x)))
-                {
-                    let eps_o = 1e-6;
-                    let mut pp = params.clone();
-                    pp[cam].0 += eps_o;
-                    let f = predicted_lag(
-                        wl.t_b,
-                        (pp[i].0, pp[i].1, delays[i]),
-                        (pp[j].0, pp[j].1, delays[j]),
-                    );
-                    jac.push((oi, (f - (wl.lag_s - r)) / eps_o));
+                // Analytic Jacobian of `predicted_lag` (at most four non-zero entries).
+                let (o_i, r_i) = params[i];
+                let (o_j, r_j) = params[j];
+                let session = (wl.t_b - delays[j]) * (1.0 + r_j) + o_j;
+                let inv = 1.0 / (1.0 + r_i);
+                let mut jac: [(usize, f64); 4] = [(0, 0.0); 4];
+                let mut m = 0;
+                if let Some((oi, di)) = index[i] {
+                    jac[m] = (oi, -inv);
+                    m += 1;
                     if let Some(di) = di {
-                        let eps_d = 1e-9;
-                        let mut pp = params.clone();
-                        pp[cam].1 += eps_d;
-                        let f = predicted_lag(
-                            wl.t_b,
-                            (pp[i].0, pp[i].1, delays[i]),
-                            (pp[j].0, pp[j].1, delays[j]),
-                        );
-                        jac.push((di, (f - (wl.lag_s - r)) / eps_d));
+                        jac[m] = (di, -(session - o_i) * inv * inv);
+                        m += 1;
                     }
                 }
-                for &(a, ja) in &jac {
+                if let Some((oj, dj)) = index[j] {
+                    jac[m] = (oj, inv);
+                    m += 1;
+                    if let Some(dj) = dj {
+                        jac[m] = (dj, (wl.t_b - delays[j]) * inv);
+                        m += 1;
+                    }
+                }
+                let jac = &jac[..m];
+                for &(a, ja) in jac {
                     g[a] += weight * ja * r;
-                    for &(b, jb) in &jac {
+                    for &(b, jb) in jac {
                         h[(a, b)] += weight * ja * jb;
                     }
                 }
