@@ -8,5 +8,6 @@
 pub mod error;
 pub mod inspect;
 pub mod sync;
+pub mod vision;
 
 pub use error::BackendError;

@@ -1,0 +1,16 @@
+//! Fisheye visual mapping and localization (issue 10, paper §4.2).
+//!
+//! Everything downstream of feature detection works on unit bearing vectors from the lens's
+//! [`kiwi_core::camera::CameraModel`], so observations beyond 90° off-axis are first-class.
+//!
+//! - [`geometry`]: residuals on the unit sphere, two-view relative pose (8-point RANSAC on
+//!   bearings), absolute pose (P3P RANSAC + robust refinement), triangulation.
+//! - [`ba`]: robust bundle adjustment with tangent-plane residuals and a Schur complement
+//!   solved with faer.
+//! - [`align`]: Umeyama Sim(3) alignment of trajectories and absolute trajectory error.
+//! - [`features`]: ORB on raw fisheye images with masks, descriptor matching, KLT tracking.
+//!
+//! Determinism: every random choice comes from a seeded ChaCha8 generator and every reduction
+//! runs in a fixed order, so results are bit-identical across runs and thread counts.
+
+pub mod geometry;
