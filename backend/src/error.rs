@@ -14,6 +14,14 @@ pub enum BackendError {
         /// What is wrong and what to do.
         message: String,
     },
+    /// A computer-vision step failed (feature extraction, geometry, bundle adjustment, maps).
+    #[error("{context}: {message}")]
+    Vision {
+        /// The step or file.
+        context: String,
+        /// What is wrong and what to do.
+        message: String,
+    },
 }
 
 /// Shorthand for results in this crate.

@@ -13,4 +13,7 @@
 //! Determinism: every random choice comes from a seeded ChaCha8 generator and every reduction
 //! runs in a fixed order, so results are bit-identical across runs and thread counts.
 
+pub mod align;
+pub mod ba;
+pub mod features;
 pub mod geometry;

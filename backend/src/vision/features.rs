@@ -1,0 +1,530 @@
+//! Features on raw (unrectified) fisheye images: ORB keypoints and descriptors through OpenCV,
+//! static masks, brute-force Hamming matching, and pyramidal KLT tracking between frames.
+//!
+//! Every keypoint carries its unit bearing from the lens's [`CameraModel`], so downstream
+//! geometry never sees pixels. Keypoints whose pixel does not unproject (outside the image
+//! circle) are dropped.
+//!
+//! Cost (BUILD-NOTES): ORB with 1 500 features costs ~32 ms per 960² frame on one core, so the
+//! mapper and localizer track with KLT between frames and extract descriptors only for keyframes
+//! and relocalization.
+
+use std::path::Path;
+
+use nalgebra::{Point2, Vector3};
+use opencv::core::{KeyPoint, Mat, Point2f, Ptr, Size, TermCriteria, TermCriteria_Type, Vector};
+use opencv::prelude::*;
+
+use kiwi_core::camera::CameraModel;
+
+use crate::error::{BackendError, Result};
+
+fn cv_err(context: &str) -> impl Fn(opencv::Error) -> BackendError + '_ {
+    move |e| BackendError::Vision {
+        context: context.to_string(),
+        message: format!("OpenCV failed: {e}"),
+    }
+}
+
+/// An 8-bit single-channel image, row-major, `width × height` bytes.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct GrayImage {
+    /// Width (px).
+    pub width: u32,
+    /// Height (px).
+    pub height: u32,
+    /// Pixels, row-major.
+    pub data: Vec<u8>,
+}
+
+impl GrayImage {
+    /// An image from raw pixels; the length must be `width · height`.
+    pub fn new(width: u32, height: u32, data: Vec<u8>) -> Result<Self> {
+        if data.len() != width as usize * height as usize || width == 0 || height == 0 {
+            return Err(BackendError::Vision {
+                context: "gray image".into(),
+                message: format!(
+                    "expected {width}x{height} = {} bytes, found {}",
+                    width as usize * height as usize,
+                    data.len()
+                ),
+            });
+        }
+        Ok(Self {
+            width,
+            height,
+            data,
+        })
+    }
+
+    /// Luma (BT.601 integer weights) of packed 8-bit RGB pixels.
+    pub fn from_rgb(width: u32, height: u32, rgb: &[u8]) -> Result<Self> {
+        let data = rgb
+            .chunks_exact(3)
+            .map(|p| {
+                ((u32::from(p[0]) * 77 + u32::from(p[1]) * 150 + u32::from(p[2]) * 29 + 128) >> 8)
+                    as u8
+            })
+            .collect();
+        Self::new(width, height, data)
+    }
+
+    /// Read an image file (PNG, JPEG, …) as grayscale.
+    pub fn load(path: &Path) -> Result<Self> {
+        let mat =
+            opencv::imgcodecs::imread(path, opencv::imgcodecs::IMREAD_GRAYSCALE).map_err(|e| {
+                BackendError::Input {
+                    path: path.to_path_buf(),
+                    message: format!("cannot read the image: {e}"),
+                }
+            })?;
+        if mat.empty() {
+            return Err(BackendError::Input {
+                path: path.to_path_buf(),
+                message: "cannot read the image (missing, unreadable or not an image); check the \
+                          path in frames.csv"
+                    .into(),
+            });
+        }
+        let bytes = mat.data_bytes().map_err(|e| BackendError::Input {
+            path: path.to_path_buf(),
+            message: format!("unexpected image layout: {e}"),
+        })?;
+        Self::new(mat.cols() as u32, mat.rows() as u32, bytes.to_vec())
+    }
+
+    /// A borrowed OpenCV header over the pixels (no copy).
+    fn as_mat(&self) -> Result<opencv::boxed_ref::BoxedRef<'_, Mat>> {
+        Mat::new_rows_cols_with_data(self.height as i32, self.width as i32, &self.data)
+            .map_err(cv_err("gray image"))
+    }
+
+    /// Pixel value at integer coordinates, 0 outside.
+    pub fn get(&self, x: i64, y: i64) -> u8 {
+        if x < 0 || y < 0 || x >= i64::from(self.width) || y >= i64::from(self.height) {
+            return 0;
+        }
+        self.data[y as usize * self.width as usize + x as usize]
+    }
+}
+
+/// A per-lens static mask: non-zero pixels may hold features.
+pub type Mask = GrayImage;
+
+/// Margin (rad) kept inside the lens's valid field of view by [`fov_mask`]: features at the very
+/// edge of the image circle are blurred and their unprojection is least certain.
+pub const FOV_MASK_MARGIN_RAD: f64 = 0.03;
+
+/// The mask of pixels that unproject to bearings at most `valid_fov/2 − margin` off-axis.
+pub fn fov_mask(camera: &dyn CameraModel, margin_rad: f64) -> Mask {
+    let (w, h) = camera.resolution();
+    let max_angle = 0.5 * camera.valid_fov() - margin_rad;
+    let cos_max = max_angle.cos();
+    let mut data = vec![0u8; w as usize * h as usize];
+    for y in 0..h {
+        for x in 0..w {
+            if let Some(b) = camera.unproject(&Point2::new(f64::from(x), f64::from(y)))
+                && b.z >= cos_max
+            {
+                data[y as usize * w as usize + x as usize] = 255;
+            }
+        }
+    }
+    Mask {
+        width: w,
+        height: h,
+        data,
+    }
+}
+
+/// Combine two masks: a pixel is usable only where both allow it.
+pub fn intersect_masks(a: &Mask, b: &Mask) -> Result<Mask> {
+    if a.width != b.width || a.height != b.height {
+        return Err(BackendError::Vision {
+            context: "mask".into(),
+            message: format!(
+                "expected masks of the same size, found {}x{} and {}x{}; resize the static mask \
+                 to the lens resolution",
+                a.width, a.height, b.width, b.height
+            ),
+        });
+    }
+    let data = a
+        .data
+        .iter()
+        .zip(&b.data)
+        .map(|(&x, &y)| if x > 0 && y > 0 { 255 } else { 0 })
+        .collect();
+    Mask::new(a.width, a.height, data)
+}
+
+/// A 256-bit ORB descriptor.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
+pub struct Descriptor(pub [u64; 4]);
+
+impl Descriptor {
+    /// Hamming distance (0–256).
+    pub fn distance(&self, other: &Self) -> u32 {
+        (self.0[0] ^ other.0[0]).count_ones()
+            + (self.0[1] ^ other.0[1]).count_ones()
+            + (self.0[2] ^ other.0[2]).count_ones()
+            + (self.0[3] ^ other.0[3]).count_ones()
+    }
+
+    fn from_bytes(b: &[u8]) -> Self {
+        let mut words = [0u64; 4];
+        for (k, word) in words.iter_mut().enumerate() {
+            let mut bytes = [0u8; 8];
+            bytes.copy_from_slice(&b[8 * k..8 * k + 8]);
+            *word = u64::from_le_bytes(bytes);
+        }
+        Self(words)
+    }
+}
+
+/// A keypoint with its bearing.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Keypoint {
+    /// Pixel position.
+    pub pixel: Point2<f64>,
+    /// Unit bearing in the camera frame.
+    pub bearing: Vector3<f64>,
+    /// Pyramid level it was detected on.
+    pub octave: i32,
+    /// Detector response (higher is stronger).
+    pub response: f32,
+}
+
+/// Keypoints and their descriptors (same order).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct FrameFeatures {
+    /// Keypoints.
+    pub keypoints: Vec<Keypoint>,
+    /// Descriptors.
+    pub descriptors: Vec<Descriptor>,
+}
+
+/// ORB settings.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct OrbOptions {
+    /// Most keypoints per image.
+    pub max_features: i32,
+    /// Pyramid scale step.
+    pub scale_factor: f32,
+    /// Pyramid levels.
+    pub levels: i32,
+    /// FAST threshold (intensity steps).
+    pub fast_threshold: i32,
+}
+
+impl Default for OrbOptions {
+    fn default() -> Self {
+        Self {
+            max_features: 1500,
+            scale_factor: 1.2,
+            levels: 8,
+            fast_threshold: 20,
+        }
+    }
+}
+
+/// Border (px) that ORB keeps free (its patch radius): also used for its edge threshold.
+const ORB_PATCH: i32 = 31;
+
+/// ORB detector/descriptor on raw fisheye images.
+pub struct OrbExtractor {
+    orb: Ptr<opencv::features2d::ORB>,
+}
+
+impl OrbExtractor {
+    /// A detector with these settings.
+    pub fn new(options: &OrbOptions) -> Result<Self> {
+        let orb = opencv::features2d::ORB::create(
+            options.max_features,
+            options.scale_factor,
+            options.levels,
+            ORB_PATCH,
+            0,
+            2,
+            opencv::features2d::ORB_ScoreType::HARRIS_SCORE,
+            ORB_PATCH,
+            options.fast_threshold,
+        )
+        .map_err(cv_err("ORB"))?;
+        Ok(Self { orb })
+    }
+
+    /// Detect and describe; keypoints outside `mask` or outside the lens's image circle are
+    /// dropped. Output is sorted by response (strongest first, ties by position) so it does not
+    /// depend on OpenCV's internal ordering.
+    pub fn extract(
+        &mut self,
+        image: &GrayImage,
+        mask: Option<&Mask>,
+        camera: &dyn CameraModel,
+    ) -> Result<FrameFeatures> {
+        let (w, h) = camera.resolution();
+        if (w, h) != (image.width, image.height) {
+            return Err(BackendError::Vision {
+                context: "ORB".into(),
+                message: format!(
+                    "image is {}x{} but the lens calibration is {w}x{h}; use frames of the \
+                     calibrated resolution",
+                    image.width, image.height
+                ),
+            });
+        }
+        let img = image.as_mat()?;
+        let mut keypoints = Vector::<KeyPoint>::new();
+        let mut desc = Mat::default();
+        match mask {
+            Some(m) => {
+                if (m.width, m.height) != (w, h) {
+                    return Err(BackendError::Vision {
+                        context: "ORB".into(),
+                        message: format!(
+                            "mask is {}x{} but the image is {w}x{h}; resize the mask",
+                            m.width, m.height
+                        ),
+                    });
+                }
+                let mm = m.as_mat()?;
+                self.orb
+                    .detect_and_compute(&img, &mm, &mut keypoints, &mut desc, false)
+            }
+            None => {
+                self.orb
+                    .detect_and_compute(&img, &Mat::default(), &mut keypoints, &mut desc, false)
+            }
+        }
+        .map_err(cv_err("ORB"))?;
+        let mut out: Vec<(Keypoint, Descriptor)> = Vec::with_capacity(keypoints.len());
+        for (i, kp) in keypoints.iter().enumerate() {
+            let p = kp.pt();
+            let pixel = Point2::new(f64::from(p.x), f64::from(p.y));
+            let Some(bearing) = camera.unproject(&pixel) else {
+                continue;
+            };
+            let row = desc
+                .at_row::<u8>(i as i32)
+                .map_err(cv_err("ORB descriptors"))?;
+            if row.len() < 32 {
+                continue;
+            }
+            out.push((
+                Keypoint {
+                    pixel,
+                    bearing: bearing.into_inner(),
+                    octave: kp.octave(),
+                    response: kp.response(),
+                },
+                Descriptor::from_bytes(&row[..32]),
+            ));
+        }
+        out.sort_by(|a, b| {
+            b.0.response
+                .total_cmp(&a.0.response)
+                .then(a.0.pixel.y.total_cmp(&b.0.pixel.y))
+                .then(a.0.pixel.x.total_cmp(&b.0.pixel.x))
+        });
+        let (keypoints, descriptors) = out.into_iter().unzip();
+        Ok(FrameFeatures {
+            keypoints,
+            descriptors,
+        })
+    }
+}
+
+/// Settings of descriptor matching.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MatchOptions {
+    /// Largest Hamming distance of a match (of 256 bits).
+    pub max_distance: u32,
+    /// Lowe's ratio: best distance must be below `ratio ×` the second best.
+    pub ratio: f32,
+    /// Keep only mutual best matches.
+    pub mutual: bool,
+}
+
+impl Default for MatchOptions {
+    fn default() -> Self {
+        Self {
+            // ORB-SLAM's "high" threshold for a reliable match.
+            max_distance: 64,
+            ratio: 0.8,
+            mutual: true,
+        }
+    }
+}
+
+/// A descriptor match `query[query_index] ↔ train[train_index]`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct DescriptorMatch {
+    /// Index in the query set.
+    pub query: usize,
+    /// Index in the train set.
+    pub train: usize,
+    /// Hamming distance.
+    pub distance: u32,
+}
+
+/// Best and second-best train index and distance for one descriptor (ties keep the lower index).
+fn best_two(d: &Descriptor, train: &[Descriptor]) -> (usize, u32, u32) {
+    let (mut bi, mut bd, mut sd) = (usize::MAX, u32::MAX, u32::MAX);
+    for (j, t) in train.iter().enumerate() {
+        let dist = d.distance(t);
+        if dist < bd {
+            sd = bd;
+            bd = dist;
+            bi = j;
+        } else if dist < sd {
+            sd = dist;
+        }
+    }
+    (bi, bd, sd)
+}
+
+/// Brute-force Hamming matching with distance, ratio and (optionally) mutual checks; output in
+/// query order. Deterministic.
+pub fn match_descriptors(
+    query: &[Descriptor],
+    train: &[Descriptor],
+    options: &MatchOptions,
+) -> Vec<DescriptorMatch> {
+    let mut reverse: Vec<Option<usize>> = vec![None; train.len()];
+    if options.mutual {
+        for (j, t) in train.iter().enumerate() {
+            let (bi, bd, _) = best_two(t, query);
+            if bi != usize::MAX && bd <= options.max_distance {
+                reverse[j] = Some(bi);
+            }
+        }
+    }
+    let mut out = Vec::new();
+    for (i, q) in query.iter().enumerate() {
+        let (bj, bd, sd) = best_two(q, train);
+        if bj == usize::MAX || bd > options.max_distance {
+            continue;
+        }
+        if sd != u32::MAX && (bd as f32) >= options.ratio * sd as f32 {
+            continue;
+        }
+        if options.mutual && reverse[bj] != Some(i) {
+            continue;
+        }
+        out.push(DescriptorMatch {
+            query: i,
+            train: bj,
+            distance: bd,
+        });
+    }
+    out
+}
+
+/// Settings of pyramidal Lucas–Kanade tracking.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct KltOptions {
+    /// Window side (px).
+    pub window: i32,
+    /// Pyramid levels above the base image.
+    pub levels: i32,
+    /// Largest forward–backward disagreement (px) of a kept track.
+    pub max_forward_backward_px: f64,
+    /// Iterations per level.
+    pub iterations: i32,
+}
+
+impl Default for KltOptions {
+    fn default() -> Self {
+        Self {
+            window: 21,
+            levels: 3,
+            // Sub-pixel round trips only: a drifting track is worse than a lost one.
+            max_forward_backward_px: 0.5,
+            iterations: 30,
+        }
+    }
+}
+
+/// A tracked point: its new pixel and bearing.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Track {
+    /// Pixel in the next image.
+    pub pixel: Point2<f64>,
+    /// Unit bearing in the next image.
+    pub bearing: Vector3<f64>,
+}
+
+/// Track pixels from `prev` into `next` with pyramidal KLT and a forward–backward check; `None`
+/// for points lost, inconsistent, outside `mask`, or outside the lens's image circle.
+pub fn track_klt(
+    prev: &GrayImage,
+    next: &GrayImage,
+    points: &[Point2<f64>],
+    mask: Option<&Mask>,
+    camera: &dyn CameraModel,
+    options: &KltOptions,
+) -> Result<Vec<Option<Track>>> {
+    if points.is_empty() {
+        return Ok(Vec::new());
+    }
+    let a = prev.as_mat()?;
+    let b = next.as_mat()?;
+    let pts: Vector<Point2f> = points
+        .iter()
+        .map(|p| Point2f::new(p.x as f32, p.y as f32))
+        .collect();
+    let criteria = TermCriteria::new(
+        TermCriteria_Type::COUNT as i32 + TermCriteria_Type::EPS as i32,
+        options.iterations,
+        0.01,
+    )
+    .map_err(cv_err("KLT"))?;
+    let win = Size::new(options.window, options.window);
+    let run = |from: &opencv::boxed_ref::BoxedRef<'_, Mat>,
+               to: &opencv::boxed_ref::BoxedRef<'_, Mat>,
+               src: &Vector<Point2f>|
+     -> Result<(Vector<Point2f>, Vector<u8>)> {
+        let mut dst = Vector::<Point2f>::new();
+        let mut status = Vector::<u8>::new();
+        let mut err = Vector::<f32>::new();
+        opencv::video::calc_optical_flow_pyr_lk(
+            from,
+            to,
+            src,
+            &mut dst,
+            &mut status,
+            &mut err,
+            win,
+            options.levels,
+            criteria,
+            0,
+            1e-4,
+        )
+        .map_err(cv_err("KLT"))?;
+        Ok((dst, status))
+    };
+    let (fwd, st1) = run(&a, &b, &pts)?;
+    let (bwd, st2) = run(&b, &a, &fwd)?;
+    let mut out = Vec::with_capacity(points.len());
+    for i in 0..points.len() {
+        let ok = st1.get(i).unwrap_or(0) != 0 && st2.get(i).unwrap_or(0) != 0;
+        let (Ok(f), Ok(back)) = (fwd.get(i), bwd.get(i)) else {
+            out.push(None);
+            continue;
+        };
+        let fb = (f64::from(back.x) - points[i].x).hypot(f64::from(back.y) - points[i].y);
+        let pixel = Point2::new(f64::from(f.x), f64::from(f.y));
+        let in_mask =
+            mask.is_none_or(|m| m.get(pixel.x.round() as i64, pixel.y.round() as i64) > 0);
+        if !ok || fb > options.max_forward_backward_px || !in_mask || !camera.in_image(&pixel) {
+            out.push(None);
+            continue;
+        }
+        out.push(camera.unproject(&pixel).map(|b| Track {
+            pixel,
+            bearing: b.into_inner(),
+        }));
+    }
+    Ok(out)
+}
