@@ -391,3 +391,74 @@ pub fn bundle_adjust(problem: &mut BaProblem, options: &BaOptions) -> Result<BaR
     report.final_rms_rad = final_rms;
     Ok(report)
 }
+
+/// Refine a two-view relative pose on its inlier bearing pairs by bundle adjustment: the
+/// inliers are triangulated, camera 1 is held fixed, camera 2 and the points move, and the
+/// translation is scaled back to unit length. Returns the refined `cam2_from_cam1` (or the
+/// input when too few pairs triangulate).
+pub fn refine_relative_pose(
+    cam2_from_cam1: &Pose,
+    b1: &[Vector3<f64>],
+    b2: &[Vector3<f64>],
+    inliers: &[bool],
+    huber_rad: f64,
+) -> Result<Pose> {
+    use crate::vision::geometry::{RayObservation, TriangulationLimits, triangulate};
+    /// Fewest triangulated pairs for a meaningful refinement (5 DoF, with redundancy).
+    const MIN_PAIRS: usize = 8;
+    let limits = TriangulationLimits {
+        min_parallax_rad: 0.0,
+        max_error_rad: std::f64::consts::FRAC_PI_2,
+    };
+    let mut problem = BaProblem {
+        cam_from_world: vec![Pose::identity(), *cam2_from_cam1],
+        fixed_camera: vec![true, false],
+        ..BaProblem::default()
+    };
+    for ((x, y), &inl) in b1.iter().zip(b2).zip(inliers) {
+        if !inl {
+            continue;
+        }
+        let obs = [
+            RayObservation {
+                cam_from_world: Pose::identity(),
+                bearing: *x,
+            },
+            RayObservation {
+                cam_from_world: *cam2_from_cam1,
+                bearing: *y,
+            },
+        ];
+        let Some(t) = triangulate(&obs, &limits) else {
+            continue;
+        };
+        let j = problem.points.len();
+        problem.points.push(t.point);
+        problem.fixed_point.push(false);
+        problem.observations.push(BaObservation {
+            camera: 0,
+            point: j,
+            bearing: *x,
+        });
+        problem.observations.push(BaObservation {
+            camera: 1,
+            point: j,
+            bearing: *y,
+        });
+    }
+    if problem.points.len() < MIN_PAIRS {
+        return Ok(*cam2_from_cam1);
+    }
+    let options = BaOptions {
+        huber_rad,
+        ..BaOptions::default()
+    };
+    bundle_adjust(&mut problem, &options)?;
+    let mut pose = problem.cam_from_world[1];
+    let n = pose.translation.vector.norm();
+    if !(n.is_finite() && n > 0.0) {
+        return Ok(*cam2_from_cam1);
+    }
+    pose.translation.vector /= n;
+    Ok(pose)
+}

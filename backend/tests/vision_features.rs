@@ -1,0 +1,233 @@
+//! ORB and KLT on raw fisheye frames rendered by the simulator (320 px): bearings consistent with
+//! the lens model, masks respected, matches good enough for the two-view geometry to recover
+//! the true relative pose, KLT tracks consistent with the true epipolar geometry.
+#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
+
+use kiwi_backend::vision::ba::refine_relative_pose;
+use kiwi_backend::vision::features::{
+    FOV_MASK_MARGIN_RAD, GrayImage, KltOptions, MatchOptions, OrbExtractor, OrbOptions, fov_mask,
+    intersect_masks, match_descriptors, track_klt,
+};
+use kiwi_backend::vision::geometry::{
+    RansacOptions, angular_error, epipolar_error, essential_from_pose, relative_pose_ransac,
+};
+use kiwi_core::camera::{Camera, CameraModel};
+use kiwi_core::geometry::{Pose, so3_exp};
+use kiwi_fixtures::render::{Extras, LensRays, RenderOptions, render};
+use kiwi_fixtures::scene::{Scene, SceneOptions};
+use kiwi_fixtures::unit::{LensModel, SimUnit};
+use nalgebra::{Matrix3, Point2, Rotation3, Translation3, UnitQuaternion, Vector3};
+
+const SIZE: u32 = 320;
+
+struct Rig {
+    scene: Scene,
+    camera: Camera,
+    rays: LensRays,
+}
+
+fn rig(model: LensModel) -> Rig {
+    let unit = SimUnit::x5("X5-VISION", 3, SIZE, model).unwrap();
+    let camera = unit.lenses[0].camera.clone();
+    let rays = LensRays::new(&camera);
+    Rig {
+        scene: Scene::new(5, SceneOptions::default()),
+        camera,
+        rays,
+    }
+}
+
+/// A camera near the table looking along +y and a little down, moved by `offset` and turned by
+/// `turn` (rad, world axes).
+fn pose(offset: Vector3<f64>, turn: Vector3<f64>) -> Pose {
+    // Columns: camera x (right) = world x, camera y (down) = −world z, camera z = world y.
+    let base = Matrix3::new(1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, -1.0, 0.0);
+    let tilt = so3_exp(&Vector3::new(-0.35, 0.0, 0.0));
+    let r = so3_exp(&turn)
+        * tilt
+        * UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(base));
+    Pose::from_parts(Translation3::from(Vector3::new(0.0, -0.6, 1.3) + offset), r)
+}
+
+fn shoot(rig: &Rig, world_from_cam: Pose, key: u64) -> GrayImage {
+    let options = RenderOptions {
+        noise_key: key,
+        ..RenderOptions::default()
+    };
+    let img = render(
+        &rig.scene,
+        &rig.rays,
+        &|_t| world_from_cam,
+        0.0,
+        &Extras::default(),
+        &options,
+    );
+    GrayImage::from_rgb(img.width(), img.height(), img.as_raw()).unwrap()
+}
+
+#[test]
+fn orb_bearings_follow_the_lens_and_masks_hold() {
+    let rig = rig(LensModel::Kb4);
+    let img = shoot(&rig, pose(Vector3::zeros(), Vector3::zeros()), 1);
+    let mask = fov_mask(&rig.camera, FOV_MASK_MARGIN_RAD);
+    let mut orb = OrbExtractor::new(&OrbOptions::default()).unwrap();
+    let f = orb.extract(&img, Some(&mask), &rig.camera).unwrap();
+    assert!(f.keypoints.len() > 300, "{} keypoints", f.keypoints.len());
+    assert_eq!(f.keypoints.len(), f.descriptors.len());
+    let mut wide = 0;
+    for k in &f.keypoints {
+        assert!((k.bearing.norm() - 1.0).abs() < 1e-12);
+        let back = rig.camera.project(&k.bearing).unwrap();
+        assert!((back - k.pixel).norm() < 1e-6);
+        if k.bearing.z.acos() > 70f64.to_radians() {
+            wide += 1;
+        }
+    }
+    assert!(wide > 20, "features far off-axis: {wide}");
+    // Same input, same output.
+    let again = orb.extract(&img, Some(&mask), &rig.camera).unwrap();
+    assert_eq!(f, again);
+    // A static mask over the left half keeps every keypoint out of it (ORB's own border aside).
+    let mut half = mask.clone();
+    for y in 0..SIZE as usize {
+        for x in 0..(SIZE / 2) as usize {
+            half.data[y * SIZE as usize + x] = 0;
+        }
+    }
+    let masked = intersect_masks(&mask, &half).unwrap();
+    let g = orb.extract(&img, Some(&masked), &rig.camera).unwrap();
+    assert!(!g.keypoints.is_empty());
+    assert!(
+        g.keypoints
+            .iter()
+            .all(|k| k.pixel.x >= f64::from(SIZE / 2) - 1.0)
+    );
+    // Wrong-size masks and images are refused with a clear message.
+    let small = GrayImage::new(10, 10, vec![255; 100]).unwrap();
+    let err = orb.extract(&img, Some(&small), &rig.camera).unwrap_err();
+    assert!(err.to_string().contains("resize the mask"), "{err}");
+}
+
+#[test]
+fn orb_matches_recover_the_true_relative_pose() {
+    for model in [LensModel::Kb4, LensModel::Ds] {
+        let rig = rig(model);
+        let w1 = pose(Vector3::zeros(), Vector3::zeros());
+        let w2 = pose(
+            Vector3::new(0.15, 0.05, 0.03),
+            Vector3::new(0.0, 0.05, 0.12),
+        );
+        let (a, b) = (shoot(&rig, w1, 1), shoot(&rig, w2, 2));
+        let mask = fov_mask(&rig.camera, FOV_MASK_MARGIN_RAD);
+        let mut orb = OrbExtractor::new(&OrbOptions::default()).unwrap();
+        let fa = orb.extract(&a, Some(&mask), &rig.camera).unwrap();
+        let fb = orb.extract(&b, Some(&mask), &rig.camera).unwrap();
+        let matches = match_descriptors(&fa.descriptors, &fb.descriptors, &MatchOptions::default());
+        assert!(matches.len() > 100, "{model:?}: {} matches", matches.len());
+        let b1: Vec<Vector3<f64>> = matches
+            .iter()
+            .map(|m| fa.keypoints[m.query].bearing)
+            .collect();
+        let b2: Vec<Vector3<f64>> = matches
+            .iter()
+            .map(|m| fb.keypoints[m.train].bearing)
+            .collect();
+        // ~1 px at 320 px (about 95 px/rad at the centre).
+        let options = RansacOptions {
+            threshold_rad: 0.01,
+            ..RansacOptions::default()
+        };
+        let mut est = relative_pose_ransac(&b1, &b2, &options).unwrap();
+        let truth = w2.inverse() * w1;
+        let raw = est
+            .cam2_from_cam1
+            .rotation
+            .angle_to(&truth.rotation)
+            .to_degrees();
+        est.cam2_from_cam1 =
+            refine_relative_pose(&est.cam2_from_cam1, &b1, &b2, &est.inliers, 0.01).unwrap();
+        let rot = est
+            .cam2_from_cam1
+            .rotation
+            .angle_to(&truth.rotation)
+            .to_degrees();
+        let dir = angular_error(
+            &est.cam2_from_cam1.translation.vector,
+            &truth.translation.vector,
+        )
+        .to_degrees();
+        eprintln!(
+            "{model:?}: {} matches, {} inliers, rotation error {rot:.3}° ({raw:.3}° before \
+             refinement), direction error {dir:.2}°",
+            matches.len(),
+            est.num_inliers
+        );
+        assert!(rot < 0.5, "{model:?}: rotation error {rot}°");
+        assert!(dir < 5.0, "{model:?}: translation direction error {dir}°");
+        assert!(
+            est.num_inliers as f64 > 0.6 * matches.len() as f64,
+            "{model:?}: {} inliers of {}",
+            est.num_inliers,
+            matches.len()
+        );
+    }
+}
+
+#[test]
+fn klt_tracks_follow_the_true_epipolar_geometry() {
+    let rig = rig(LensModel::Kb4);
+    let w1 = pose(Vector3::zeros(), Vector3::zeros());
+    let w2 = pose(Vector3::new(0.02, 0.01, 0.0), Vector3::new(0.0, 0.0, 0.02));
+    let (a, b) = (shoot(&rig, w1, 1), shoot(&rig, w2, 2));
+    let mask = fov_mask(&rig.camera, FOV_MASK_MARGIN_RAD);
+    let mut orb = OrbExtractor::new(&OrbOptions::default()).unwrap();
+    let fa = orb.extract(&a, Some(&mask), &rig.camera).unwrap();
+    let pts: Vec<Point2<f64>> = fa.keypoints.iter().map(|k| k.pixel).collect();
+    let tracks = track_klt(
+        &a,
+        &b,
+        &pts,
+        Some(&mask),
+        &rig.camera,
+        &KltOptions::default(),
+    )
+    .unwrap();
+    assert_eq!(tracks.len(), pts.len());
+    let e = essential_from_pose(&(w2.inverse() * w1));
+    let kept: Vec<(usize, f64)> = tracks
+        .iter()
+        .enumerate()
+        .filter_map(|(i, t)| {
+            t.map(|t| (i, epipolar_error(&e, &fa.keypoints[i].bearing, &t.bearing)))
+        })
+        .collect();
+    assert!(
+        kept.len() as f64 > 0.7 * pts.len() as f64,
+        "{} of {} tracked",
+        kept.len(),
+        pts.len()
+    );
+    let good_strict = kept.iter().filter(|(_, err)| *err < 0.002).count();
+    eprintln!(
+        "KLT: {} of {} tracked, {good_strict} within 2 mrad of their epipolar plane",
+        kept.len(),
+        pts.len()
+    );
+    let good = kept.iter().filter(|(_, err)| *err < 0.005).count();
+    assert!(
+        good as f64 > 0.95 * kept.len() as f64,
+        "{good} of {} on their epipolar plane",
+        kept.len()
+    );
+    // Identical on a second run.
+    let again = track_klt(
+        &a,
+        &b,
+        &pts,
+        Some(&mask),
+        &rig.camera,
+        &KltOptions::default(),
+    )
+    .unwrap();
+    assert_eq!(tracks, again);
+}
