@@ -5,9 +5,11 @@
 //! `calibration.json` into the files other tools read and imports Kalibr calibrations;
 //! [`qr_clock`], the QR-clock rig's display video; [`av_delay`], the rig's analysis.
 
+pub mod allan;
 pub mod av_delay;
 pub mod error;
 pub mod export;
+pub mod plot;
 pub mod qr_clock;
 
 pub use error::CalibError;

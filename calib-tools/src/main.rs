@@ -61,6 +61,39 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// IMU noise from a long static log: overlapping Allan deviation per axis and a joint fit
+    /// of quantization, white noise, bias instability, random walk and rate ramp.
+    ImuNoise {
+        /// The static log (imu.csv: t,gx,gy,gz,ax,ay,az in s, rad/s, m/s²); hours at up to 1 kHz.
+        #[arg(long)]
+        imu: PathBuf,
+        /// Result folder (imu_noise.json, imu.yaml, allan.png, report.md).
+        #[arg(long)]
+        out: PathBuf,
+        /// Where to write the plot (default OUT/allan.png).
+        #[arg(long)]
+        plot: Option<PathBuf>,
+        /// The unit's calibration.json: a copy with this noise model is written to OUT.
+        #[arg(long)]
+        calibration: Option<PathBuf>,
+        /// Averaging times per decade.
+        #[arg(long, default_value_t = 20)]
+        per_decade: usize,
+        /// Terms to fit (comma-separated): quantization, white, bias-instability, random-walk,
+        /// rate-ramp.
+        #[arg(
+            long,
+            default_value = "quantization,white,bias-instability,random-walk,rate-ramp"
+        )]
+        terms: String,
+        /// Terms that must be well determined, else the command fails and says how long a log
+        /// is needed (comma-separated; empty for none).
+        #[arg(long, default_value = "white,random-walk")]
+        require: String,
+        /// Print the JSON summary.
+        #[arg(long)]
+        json: bool,
+    },
     /// Check a unit's calibration.json and print a summary.
     Validate {
         /// The calibration.json to check.
@@ -99,6 +132,15 @@ enum Command {
         #[arg(long)]
         out: PathBuf,
     },
+    /// Write print-ready targets: a Kalibr aprilgrid board (+ target yaml) or an ArUco tag.
+    #[command(subcommand)]
+    Target(kiwi_calib::lens_cli::TargetCommand),
+    /// Detect aprilgrid corners in a folder of images and write a corners file.
+    Detect(kiwi_calib::lens_cli::DetectArgs),
+    /// Calibrate a lens's intrinsics over its whole field of view (images or a corners file).
+    Intrinsics(kiwi_calib::lens_cli::IntrinsicsArgs),
+    /// Time detection + intrinsics fit of a folder of images (benchmark).
+    BenchIntrinsics(kiwi_calib::lens_cli::BenchIntrinsicsArgs),
 }
 
 fn main() -> Result<()> {
@@ -181,6 +223,87 @@ fn main() -> Result<()> {
                 }
                 for p in written {
                     println!("wrote {}", p.display());
+                }
+            }
+        }
+        Command::ImuNoise {
+            imu,
+            out,
+            plot,
+            calibration,
+            per_decade,
+            terms,
+            require,
+            json,
+        } => {
+            let parse_terms = |list: &str, flag: &str| -> Result<Vec<kiwi_calib::allan::Term>> {
+                list.split(',')
+                    .filter(|t| !t.trim().is_empty())
+                    .map(|t| {
+                        kiwi_calib::allan::Term::parse(t).ok_or_else(|| {
+                            anyhow::anyhow!(
+                                "{flag} {t}: expected quantization, white, bias-instability, \
+                                 random-walk or rate-ramp"
+                            )
+                        })
+                    })
+                    .collect()
+            };
+            let options = kiwi_calib::allan::AllanOptions {
+                per_decade,
+                terms: parse_terms(&terms, "--terms")?,
+                require: parse_terms(&require, "--require")?,
+                ..Default::default()
+            };
+            let calibration = match &calibration {
+                Some(p) => Some((p.as_path(), UnitCalibration::load(p)?)),
+                None => None,
+            };
+            let bar =
+                indicatif::ProgressBar::new(0).with_style(indicatif::ProgressStyle::with_template(
+                    "reading {msg} {bar:40} {bytes}/{total_bytes} ({eta})",
+                )?);
+            bar.set_message(imu.display().to_string());
+            let log = kiwi_calib::allan::read_static_log(&imu, Some(&bar))?;
+            bar.finish_and_clear();
+            let report = kiwi_calib::allan::analyse(log, &options)?;
+            let written =
+                kiwi_calib::allan::write_outputs(&report, &out, plot.as_deref(), calibration)?;
+            if json {
+                println!(
+                    "{}",
+                    serde_json::to_string_pretty(&kiwi_calib::allan::summary_json(&report))?
+                );
+            } else {
+                println!(
+                    "{} samples at {:.2} Hz ({:.2} h)",
+                    report.samples,
+                    report.rate_hz,
+                    report.duration_s / 3600.0
+                );
+                println!(
+                    "gyroscope:     noise density {:.3e} rad/s/√Hz, random walk {:.3e} rad/s²/√Hz, \
+                     bias instability {:.3e} rad/s",
+                    report.gyroscope_noise_density,
+                    report.gyroscope_random_walk,
+                    report.gyroscope_bias_instability
+                );
+                println!(
+                    "accelerometer: noise density {:.3e} m/s²/√Hz, random walk {:.3e} m/s³/√Hz, \
+                     bias instability {:.3e} m/s²",
+                    report.accelerometer_noise_density,
+                    report.accelerometer_random_walk,
+                    report.accelerometer_bias_instability
+                );
+                for w in &report.warnings {
+                    println!("warning: {w}");
+                }
+                println!("wrote {}", written.result.display());
+                println!("wrote {}", written.kalibr_imu.display());
+                println!("wrote {}", written.plot.display());
+                println!("wrote {}", written.report.display());
+                if let Some(c) = &written.calibration {
+                    println!("wrote {}", c.display());
                 }
             }
         }
@@ -270,6 +393,44 @@ fn main() -> Result<()> {
             .with_context(|| format!("importing {}", camchain.display()))?;
             cal.save(&out)?;
             println!("wrote {} ({} lenses)", out.display(), cal.lenses.len());
+        }
+        Command::Target(cmd) => {
+            for p in kiwi_calib::lens_cli::run_target(&cmd)? {
+                println!("wrote {}", p.display());
+            }
+        }
+        Command::Detect(args) => {
+            let set = kiwi_calib::lens_cli::run_detect(&args)?;
+            if args.json {
+                println!("{}", serde_json::to_string_pretty(&set.summary_json())?);
+            } else {
+                println!(
+                    "{} images with the target, {} corners; wrote {}",
+                    set.images.len(),
+                    set.total_corners(),
+                    args.out.display()
+                );
+            }
+        }
+        Command::Intrinsics(args) => {
+            let summary = kiwi_calib::lens_cli::run_intrinsics(&args)?;
+            if args.json {
+                println!("{}", serde_json::to_string_pretty(&summary)?);
+            } else {
+                println!(
+                    "{} rms {:.3} px over {} views, {} corners ({} rejected); params {}; wrote {}",
+                    summary["model"],
+                    summary["rms_px"].as_f64().unwrap_or(f64::NAN),
+                    summary["n_views"],
+                    summary["n_corners"],
+                    summary["n_rejected"],
+                    summary["params"],
+                    args.out.display()
+                );
+            }
+        }
+        Command::BenchIntrinsics(args) => {
+            println!("{}", kiwi_calib::lens_cli::run_bench(&args)?);
         }
     }
     Ok(())
