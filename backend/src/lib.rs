@@ -6,6 +6,7 @@
 //! synchronisation.
 
 pub mod error;
+pub mod estimate;
 pub mod inspect;
 pub mod sync;
 pub mod vision;
