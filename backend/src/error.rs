@@ -6,6 +6,9 @@ pub enum BackendError {
     /// An error from the shared core (file formats, validation).
     #[error(transparent)]
     Core(#[from] kiwi_core::CoreError),
+    /// State estimation cannot run on the given data (what is wrong and what to do).
+    #[error("{0}")]
+    Estimation(String),
     /// An input file cannot be used.
     #[error("{path}: {message}")]
     Input {

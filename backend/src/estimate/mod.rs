@@ -4,4 +4,5 @@
 
 pub mod chain;
 pub mod factors;
+pub mod fusion;
 pub mod preint;
