@@ -158,8 +158,8 @@ pub fn intersect_masks(a: &Mask, b: &Mask) -> Result<Mask> {
     Mask::new(a.width, a.height, data)
 }
 
-/// A 256-bit ORB descriptor.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
+/// A 256-bit ORB descriptor (serialized as 64 hex digits, see [`crate::vision::map`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub struct Descriptor(pub [u64; 4]);
 
 impl Descriptor {

@@ -17,3 +17,4 @@ pub mod align;
 pub mod ba;
 pub mod features;
 pub mod geometry;
+pub mod map;

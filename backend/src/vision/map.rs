@@ -1,0 +1,382 @@
+//! The visual map file (`.kmap`): versioned, self-describing JSON, loadable without the images.
+//!
+//! A map holds what localization needs: the lens it was built from (camera model, parameters,
+//! resolution), keyframes with their poses and features (pixel, bearing, ORB descriptor, the
+//! landmark each feature observes), and landmarks with positions and a representative
+//! descriptor. Poses are `cam_from_map`; the map frame and scale are arbitrary (metric recovery
+//! is a later stage). A map refuses to serve a lens of another model, resolution or
+//! calibration, with an error that says which map to build instead.
+//!
+//! Descriptors are written as 64 hexadecimal digits (256 bits, little-endian words) so that no
+//! JSON reader loses precision.
+
+use std::path::Path;
+
+use nalgebra::{Quaternion, Translation3, UnitQuaternion, Vector3};
+use serde::{Deserialize, Deserializer, Serialize, Serializer};
+
+use kiwi_core::camera::{Camera, CameraModel, CameraModelKind, DoubleSphere, Kb4};
+use kiwi_core::geometry::Pose;
+
+use crate::error::{BackendError, Result};
+use crate::vision::features::Descriptor;
+
+/// The `format` tag of a map file.
+pub const MAP_FORMAT: &str = "kiwi-visual-map";
+/// The schema version this build writes and reads.
+pub const MAP_SCHEMA_VERSION: u32 = 1;
+/// Largest relative difference of a camera parameter between map and query lens: beyond it the
+/// query is another calibration (1e-9 tolerates text round trips, nothing else).
+const PARAM_TOLERANCE: f64 = 1e-9;
+/// Largest deviation of a unit vector's norm from one in a valid file.
+const UNIT_TOLERANCE: f64 = 1e-6;
+
+impl Serialize for Descriptor {
+    fn serialize<S: Serializer>(&self, s: S) -> std::result::Result<S::Ok, S::Error> {
+        let mut text = String::with_capacity(64);
+        for w in self.0 {
+            text.push_str(&format!("{w:016x}"));
+        }
+        s.serialize_str(&text)
+    }
+}
+
+impl<'de> Deserialize<'de> for Descriptor {
+    fn deserialize<D: Deserializer<'de>>(d: D) -> std::result::Result<Self, D::Error> {
+        let text = String::deserialize(d)?;
+        if text.len() != 64 || !text.is_ascii() {
+            return Err(serde::de::Error::custom(format!(
+                "expected 64 hexadecimal digits, found {} characters",
+                text.len()
+            )));
+        }
+        let mut words = [0u64; 4];
+        for (k, w) in words.iter_mut().enumerate() {
+            *w = u64::from_str_radix(&text[16 * k..16 * k + 16], 16)
+                .map_err(|e| serde::de::Error::custom(format!("bad hexadecimal digits: {e}")))?;
+        }
+        Ok(Self(words))
+    }
+}
+
+/// The lens a map was built from.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct MapCamera {
+    /// Camera model.
+    pub model: CameraModelKind,
+    /// Image size `[width, height]` (px).
+    pub resolution: [u32; 2],
+    /// Parameters in the model's documented order.
+    pub params: Vec<f64>,
+}
+
+impl MapCamera {
+    /// Describe a camera.
+    pub fn from_camera(camera: &dyn CameraModel) -> Self {
+        let (w, h) = camera.resolution();
+        Self {
+            model: camera.kind(),
+            resolution: [w, h],
+            params: camera.params().to_vec(),
+        }
+    }
+
+    /// The camera model (validated).
+    pub fn camera(&self) -> Result<Camera> {
+        let [w, h] = self.resolution;
+        let bad = |n: usize| BackendError::Vision {
+            context: "map camera".into(),
+            message: format!(
+                "expected {n} parameters for model {}, found {}",
+                self.model,
+                self.params.len()
+            ),
+        };
+        Ok(match self.model {
+            CameraModelKind::Kb4 => {
+                let p: [f64; 8] = self.params.as_slice().try_into().map_err(|_| bad(8))?;
+                Camera::Kb4(Kb4::new(w, h, p)?)
+            }
+            CameraModelKind::DoubleSphere => {
+                let p: [f64; 6] = self.params.as_slice().try_into().map_err(|_| bad(6))?;
+                Camera::DoubleSphere(DoubleSphere::new(w, h, p)?)
+            }
+        })
+    }
+}
+
+/// A rigid transform as stored: unit quaternion `[x, y, z, w]` and translation.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct MapPose {
+    /// Rotation quaternion `[x, y, z, w]`.
+    pub rotation_xyzw: [f64; 4],
+    /// Translation (map units).
+    pub translation: [f64; 3],
+}
+
+impl MapPose {
+    /// From a pose.
+    pub fn from_pose(p: &Pose) -> Self {
+        let q = p.rotation.quaternion();
+        let t = p.translation.vector;
+        Self {
+            rotation_xyzw: [q.i, q.j, q.k, q.w],
+            translation: [t.x, t.y, t.z],
+        }
+    }
+
+    /// To a pose; `None` unless finite with a unit quaternion.
+    pub fn to_pose(&self) -> Option<Pose> {
+        let [x, y, z, w] = self.rotation_xyzw;
+        let q = Quaternion::new(w, x, y, z);
+        let all_finite = self
+            .rotation_xyzw
+            .iter()
+            .chain(&self.translation)
+            .all(|v| v.is_finite());
+        if !all_finite || (q.norm() - 1.0).abs() > UNIT_TOLERANCE {
+            return None;
+        }
+        Some(Pose::from_parts(
+            Translation3::from(Vector3::from(self.translation)),
+            UnitQuaternion::from_quaternion(q),
+        ))
+    }
+}
+
+/// A feature of a keyframe.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct MapFeature {
+    /// Pixel `[x, y]`.
+    pub pixel: [f64; 2],
+    /// Unit bearing in the keyframe's camera frame.
+    pub bearing: [f64; 3],
+    /// ORB descriptor.
+    pub descriptor: Descriptor,
+    /// Index of the landmark it observes, if any.
+    pub landmark: Option<u32>,
+}
+
+/// A keyframe.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct MapKeyframe {
+    /// Frame index in the mapping episode's `frames.csv`.
+    pub frame: u32,
+    /// Frame time (s, camera clock).
+    pub t: f64,
+    /// Map coordinates to camera coordinates.
+    pub cam_from_map: MapPose,
+    /// Features.
+    pub features: Vec<MapFeature>,
+}
+
+/// A landmark.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct MapLandmark {
+    /// Position in the map frame.
+    pub position: [f64; 3],
+    /// Representative descriptor (the medoid of its observations).
+    pub descriptor: Descriptor,
+}
+
+/// A frozen visual map.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct VisualMap {
+    /// Always [`MAP_FORMAT`].
+    pub format: String,
+    /// Schema version ([`MAP_SCHEMA_VERSION`]).
+    pub schema_version: u32,
+    /// The program that wrote it (`kiwi <version>`).
+    pub created_by: String,
+    /// Camera folder name the map was built from (`left`, `right`, `head`).
+    pub camera_name: String,
+    /// Lens name (`front`, `rear`, `main`).
+    pub lens: String,
+    /// Mapping episode name.
+    pub episode: String,
+    /// The lens's calibration.
+    pub camera: MapCamera,
+    /// Keyframes in time order.
+    pub keyframes: Vec<MapKeyframe>,
+    /// Landmarks (indexed by [`MapFeature::landmark`]).
+    pub landmarks: Vec<MapLandmark>,
+}
+
+fn map_err(path: &Path, message: String) -> BackendError {
+    BackendError::Input {
+        path: path.to_path_buf(),
+        message,
+    }
+}
+
+fn finite(v: &[f64]) -> bool {
+    v.iter().all(|x| x.is_finite())
+}
+
+fn unit(v: &[f64; 3]) -> bool {
+    finite(v) && (Vector3::from(*v).norm() - 1.0).abs() <= UNIT_TOLERANCE
+}
+
+impl VisualMap {
+    /// An empty map for a lens.
+    pub fn new(camera_name: &str, lens: &str, episode: &str, camera: &dyn CameraModel) -> Self {
+        Self {
+            format: MAP_FORMAT.into(),
+            schema_version: MAP_SCHEMA_VERSION,
+            created_by: format!("kiwi {}", env!("CARGO_PKG_VERSION")),
+            camera_name: camera_name.into(),
+            lens: lens.into(),
+            episode: episode.into(),
+            camera: MapCamera::from_camera(camera),
+            keyframes: Vec::new(),
+            landmarks: Vec::new(),
+        }
+    }
+
+    /// Check every field; `path` names the file in errors.
+    pub fn validate(&self, path: &Path) -> Result<()> {
+        if self.format != MAP_FORMAT {
+            return Err(map_err(
+                path,
+                format!(
+                    "field `format`: expected \"{MAP_FORMAT}\", found \"{}\"; this is not a KIWI \
+                     visual map",
+                    self.format
+                ),
+            ));
+        }
+        if self.schema_version != MAP_SCHEMA_VERSION {
+            return Err(map_err(
+                path,
+                format!(
+                    "field `schema_version`: this kiwi reads version {MAP_SCHEMA_VERSION}, found {}; \
+                     rebuild the map with this kiwi (`kiwi map`)",
+                    self.schema_version
+                ),
+            ));
+        }
+        self.camera
+            .camera()
+            .map_err(|e| map_err(path, format!("field `camera`: {e}")))?;
+        let n_land = self.landmarks.len();
+        for (i, l) in self.landmarks.iter().enumerate() {
+            if !finite(&l.position) {
+                return Err(map_err(
+                    path,
+                    format!("field `landmarks[{i}].position`: expected finite numbers"),
+                ));
+            }
+        }
+        let mut last_t = f64::NEG_INFINITY;
+        for (k, kf) in self.keyframes.iter().enumerate() {
+            if kf.cam_from_map.to_pose().is_none() {
+                return Err(map_err(
+                    path,
+                    format!(
+                        "field `keyframes[{k}].cam_from_map`: expected a finite pose with a unit \
+                         quaternion"
+                    ),
+                ));
+            }
+            if !kf.t.is_finite() || kf.t <= last_t {
+                return Err(map_err(
+                    path,
+                    format!(
+                        "field `keyframes[{k}].t`: expected finite, strictly increasing times, \
+                         found {} after {last_t}",
+                        kf.t
+                    ),
+                ));
+            }
+            last_t = kf.t;
+            for (f, feat) in kf.features.iter().enumerate() {
+                let where_ = format!("keyframes[{k}].features[{f}]");
+                if !finite(&feat.pixel) || !unit(&feat.bearing) {
+                    return Err(map_err(
+                        path,
+                        format!("field `{where_}`: expected a finite pixel and a unit bearing"),
+                    ));
+                }
+                if let Some(l) = feat.landmark
+                    && l as usize >= n_land
+                {
+                    return Err(map_err(
+                        path,
+                        format!(
+                            "field `{where_}.landmark`: {l} but the map has {n_land} landmarks"
+                        ),
+                    ));
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Write atomically as JSON.
+    pub fn save(&self, path: &Path) -> Result<()> {
+        self.validate(path)?;
+        let bytes = serde_json::to_vec(self).map_err(|e| map_err(path, e.to_string()))?;
+        kiwi_core::io::write_atomic(path, &bytes)?;
+        Ok(())
+    }
+
+    /// Read and validate a map file.
+    pub fn load(path: &Path) -> Result<Self> {
+        let text = kiwi_core::io::read_text(path)?;
+        let map: Self = serde_json::from_str(&text).map_err(|e| {
+            map_err(
+                path,
+                format!("not a valid KIWI visual map: {e}; rebuild it with `kiwi map`"),
+            )
+        })?;
+        map.validate(path)?;
+        Ok(map)
+    }
+
+    /// Refuse to localize a lens this map was not built for: another lens name, camera model,
+    /// resolution or calibration.
+    pub fn check_query_lens(&self, lens: &str, camera: &dyn CameraModel) -> Result<()> {
+        let query = MapCamera::from_camera(camera);
+        let same_params = query.params.len() == self.camera.params.len()
+            && query
+                .params
+                .iter()
+                .zip(&self.camera.params)
+                .all(|(a, b)| (a - b).abs() <= PARAM_TOLERANCE * a.abs().max(b.abs()).max(1.0));
+        let problem = if lens != self.lens {
+            Some(format!(
+                "lens `{lens}` but the map was built from lens `{}`",
+                self.lens
+            ))
+        } else if query.model != self.camera.model {
+            Some(format!(
+                "a {} lens but the map was built with a {} model",
+                query.model, self.camera.model
+            ))
+        } else if query.resolution != self.camera.resolution {
+            Some(format!(
+                "{}x{} images but the map was built from {}x{}",
+                query.resolution[0],
+                query.resolution[1],
+                self.camera.resolution[0],
+                self.camera.resolution[1]
+            ))
+        } else if !same_params {
+            Some("a lens with other calibration parameters than the map's".to_string())
+        } else {
+            None
+        };
+        match problem {
+            None => Ok(()),
+            Some(p) => Err(BackendError::Vision {
+                context: format!(
+                    "map of {}/{} ({})",
+                    self.camera_name, self.lens, self.episode
+                ),
+                message: format!(
+                    "cannot localize {p}; build a map for this lens with `kiwi map --lens {lens}`"
+                ),
+            }),
+        }
+    }
+}
