@@ -51,6 +51,52 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Fuse a wrist's IMU with visual pose observations (robust IMU factor graph, one node per
+    /// frame) and write `scene_from_front_cam` per node with marginal sigmas.
+    ///
+    /// Inputs: `imu.csv` (`t,gx,gy,gz,ax,ay,az`), `frames.csv` (first column `t`, camera clock),
+    /// `obs.csv` (`t,source,px,py,pz,qx,qy,qz,qw`, `scene_from_imu` on the IMU clock, source
+    /// front|rear). Output `traj.csv`: `t,px,py,pz,qx,qy,qz,qw,sigma_p,sigma_r,support`.
+    /// Without `--calibration` the fusion runs in the IMU frame (`scene_from_imu`) and needs
+    /// `--imu-noise`.
+    Fuse {
+        /// The IMU log (imu.csv).
+        #[arg(long)]
+        imu: PathBuf,
+        /// Node timestamps (first column `t`).
+        #[arg(long)]
+        frames: PathBuf,
+        /// Visual pose observations.
+        #[arg(long)]
+        observations: PathBuf,
+        /// Unit calibration.json (IMU noise, cam_from_imu and time shift of --lens).
+        #[arg(long)]
+        calibration: Option<PathBuf>,
+        /// The lens whose frames are the nodes.
+        #[arg(long, default_value = "front")]
+        lens: String,
+        /// IMU noise GN,GW,AN,AW: gyro noise (rad/s/√Hz), gyro random walk (rad/s²/√Hz),
+        /// accel noise (m/s²/√Hz), accel random walk (m/s³/√Hz).
+        #[arg(long, value_name = "GN,GW,AN,AW")]
+        imu_noise: Option<String>,
+        /// Pose noise of a source: SOURCE=METRES,RADIANS [defaults: front=0.001,0.001745,
+        /// rear=0.002,0.00349].
+        #[arg(long = "pose-sigma", value_name = "SOURCE=M,RAD")]
+        pose_sigma: Vec<String>,
+        /// Huber threshold on the whitened 6-dof residual norm; 0 disables it [default: 3.55].
+        #[arg(long)]
+        huber: Option<f64>,
+        /// Keep at most this many visual factors per second and source (every frame stays a
+        /// node) [default: all].
+        #[arg(long)]
+        visual_rate: Option<f64>,
+        /// Output trajectory CSV.
+        #[arg(long)]
+        out: PathBuf,
+        /// Print a JSON summary.
+        #[arg(long)]
+        json: bool,
+    },
     /// Check a session: session.toml, unit calibrations and every prepared episode's files.
     Inspect {
         /// The session's session.toml.
@@ -181,6 +227,100 @@ fn main() -> Result<()> {
                         p.a, p.b, p.status, p.votes, p.peak_ratio
                     );
                 }
+            }
+        }
+        Command::Fuse {
+            imu,
+            frames,
+            observations,
+            calibration,
+            lens,
+            imu_noise,
+            pose_sigma,
+            huber,
+            visual_rate,
+            out,
+            json,
+        } => {
+            let mut config = kiwi_backend::estimate::fusion::FusionConfig::default();
+            for arg in &pose_sigma {
+                let (name, value) = named(arg, "--pose-sigma")?;
+                let parts: Vec<f64> = value
+                    .split(',')
+                    .map(|v| v.trim().parse::<f64>())
+                    .collect::<std::result::Result<_, _>>()
+                    .map_err(|_| {
+                        anyhow::anyhow!("--pose-sigma {arg}: expected SOURCE=METRES,RADIANS")
+                    })?;
+                let [p, r] = parts[..] else {
+                    anyhow::bail!("--pose-sigma {arg}: expected SOURCE=METRES,RADIANS");
+                };
+                if !(p > 0.0 && r > 0.0 && p.is_finite() && r.is_finite()) {
+                    anyhow::bail!("--pose-sigma {arg}: sigmas must be positive");
+                }
+                let sigma = kiwi_backend::estimate::fusion::PoseSigma {
+                    position_m: p,
+                    rotation_rad: r,
+                };
+                match name.as_str() {
+                    "front" => config.front_sigma = sigma,
+                    "rear" => config.rear_sigma = sigma,
+                    other => anyhow::bail!(
+                        "--pose-sigma {arg}: unknown source `{other}` (front or rear)"
+                    ),
+                }
+            }
+            if let Some(k) = huber {
+                if !(k >= 0.0 && k.is_finite()) {
+                    anyhow::bail!("--huber {k}: expected a non-negative threshold (0 disables)");
+                }
+                config.huber_k = (k > 0.0).then_some(k);
+            }
+            config.visual_rate_hz = visual_rate;
+            let imu_noise = match imu_noise {
+                Some(s) => {
+                    let v: Vec<f64> = s
+                        .split(',')
+                        .map(|v| v.trim().parse::<f64>())
+                        .collect::<std::result::Result<_, _>>()
+                        .map_err(|_| {
+                            anyhow::anyhow!("--imu-noise {s}: expected four numbers GN,GW,AN,AW")
+                        })?;
+                    let [a, b, c, d] = v[..] else {
+                        anyhow::bail!("--imu-noise {s}: expected four numbers GN,GW,AN,AW");
+                    };
+                    if v.iter().any(|x| !(*x > 0.0 && x.is_finite())) {
+                        anyhow::bail!("--imu-noise {s}: densities must be positive (SI units)");
+                    }
+                    Some([a, b, c, d])
+                }
+                None => None,
+            };
+            let summary = kiwi_backend::estimate::files::run_fuse(
+                &kiwi_backend::estimate::files::FuseOptions {
+                    imu,
+                    frames,
+                    observations,
+                    calibration,
+                    lens,
+                    imu_noise,
+                    config,
+                    out: out.clone(),
+                },
+            )?;
+            if json {
+                println!("{}", serde_json::to_string(&summary)?);
+            } else {
+                println!(
+                    "fused {} nodes from {} observations ({} downweighted) in {} iterations, \
+                     {:.2} s -> {}",
+                    summary.nodes,
+                    summary.observations_used,
+                    summary.outliers_downweighted,
+                    summary.iterations,
+                    summary.seconds,
+                    out.display()
+                );
             }
         }
         Command::Inspect { session, json } => {

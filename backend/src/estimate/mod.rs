@@ -4,5 +4,6 @@
 
 pub mod chain;
 pub mod factors;
+pub mod files;
 pub mod fusion;
 pub mod preint;
