@@ -62,6 +62,9 @@ const POORLY_DETERMINED_REL: f64 = 0.25;
 /// Scaled coefficients below this fraction of the largest are taken as at their bound (0)
 /// when the QP solution is polished.
 const ACTIVE_SET_EPS: f64 = 1e-6;
+/// A fitted term within this many standard deviations of zero is reported as absent rather
+/// than as poorly determined (no warning unless it is required).
+const ABSENT_SIGMAS: f64 = 2.0;
 /// Reweighting iterations of the fit (weights from the model, not from the noisy data).
 const FIT_ITERATIONS: usize = 6;
 
@@ -1097,7 +1100,10 @@ pub fn analyse(log: StaticLog, options: &AllanOptions) -> Result<NoiseReport> {
     for (a, (curve, fit)) in curves.into_iter().zip(fits).enumerate() {
         for &t in &options.terms {
             let e = fit.term(t);
-            if !e.determined {
+            let required = options.require.contains(&t);
+            // A term consistent with zero is simply absent from this IMU, unless required.
+            let absent = e.value <= ABSENT_SIGMAS * e.std;
+            if !e.determined && (required || !absent) {
                 let need = needed_duration(&fit, t, duration, options.max_tau_fraction);
                 let message = format!(
                     "{} {}: {} ± {} is poorly determined by this {:.0}-s log{}",
@@ -1111,7 +1117,7 @@ pub fn analyse(log: StaticLog, options: &AllanOptions) -> Result<NoiseReport> {
                         human_duration(s)
                     ))
                 );
-                if options.require.contains(&t) {
+                if required {
                     return Err(input(
                         &path,
                         format!("{message} (required term; record a longer log)"),
@@ -1176,17 +1182,16 @@ fn dominant(fit: &AxisFit, tau: f64) -> Term {
 fn needed_duration(fit: &AxisFit, t: Term, duration: f64, max_fraction: f64) -> Option<f64> {
     let n2 = fit.white_noise.value.powi(2);
     match t {
-        Term::RandomWalk | Term::RateRamp | Term::BiasInstability => {
-            // Use an optimistic (upper) value of the term so the figure is a lower bound.
+        Term::RandomWalk => {
+            // Use an optimistic (upper) value of K so the figure is a lower bound.
             let k = fit.random_walk.value + fit.random_walk.std.min(1e300);
-            if t == Term::RandomWalk && k > 0.0 && n2 > 0.0 {
+            (k > 0.0 && n2 > 0.0).then(|| {
                 let crossover = 3.0 * n2 / (k * k);
-                Some((10.0 * crossover / max_fraction).max(2.0 * duration))
-            } else {
-                Some(4.0 * duration)
-            }
+                (10.0 * crossover / max_fraction).max(2.0 * duration)
+            })
         }
-        Term::White | Term::Quantization => Some((10.0 / max_fraction).max(2.0 * duration)),
+        Term::White => Some((MIN_LOG_S * 10.0).max(2.0 * duration)),
+        Term::Quantization | Term::BiasInstability | Term::RateRamp => None,
     }
 }
 
@@ -1266,7 +1271,7 @@ pub fn summary_json(report: &NoiseReport) -> serde_json::Value {
 /// Log-log plot of every axis's ADEV with its confidence band and the fitted terms: gyro axes
 /// in one panel, accelerometer axes in another, stacked into one PNG.
 pub fn plot(report: &NoiseReport, path: &Path) -> Result<()> {
-    use crate::plot::{Band, Figure, Series, Style};
+    use crate::plot::{Band, Corner, Figure, Series, Style};
     const AXIS_COLORS: [[u8; 3]; 3] = [[214, 39, 40], [44, 160, 44], [31, 119, 180]];
     const TERM_COLORS: [[u8; 3]; 5] = [
         [148, 103, 189],
@@ -1292,6 +1297,21 @@ pub fn plot(report: &NoiseReport, path: &Path) -> Result<()> {
         );
         fig.x_log = true;
         fig.y_log = true;
+        fig.legend = Corner::BottomLeft;
+        // The data's range (a decade below its floor): fitted terms leave it, the data does not.
+        let (lo, hi) = range.clone().fold((f64::INFINITY, 0.0f64), |(lo, hi), a| {
+            let ax = &report.axes[a];
+            let lo = ax
+                .adev_low
+                .iter()
+                .copied()
+                .filter(|v| *v > 0.0)
+                .fold(lo, f64::min);
+            (lo, ax.adev_high.iter().copied().fold(hi, f64::max))
+        });
+        if lo.is_finite() && hi > lo {
+            fig.y_range = Some((lo / 10.0, hi));
+        }
         for (k, a) in range.clone().enumerate() {
             let ax = &report.axes[a];
             let color = AXIS_COLORS[k];
@@ -1327,7 +1347,8 @@ pub fn plot(report: &NoiseReport, path: &Path) -> Result<()> {
         let first = &report.axes[range.start];
         let taus = &first.curve.taus;
         for (i, t) in Term::ALL.into_iter().enumerate() {
-            if first.fit.term(t).value > 0.0 {
+            let e = first.fit.term(t);
+            if e.value > ABSENT_SIGMAS * e.std {
                 fig.series.push(Series {
                     name: format!("{} {}", first.axis, t.name()),
                     color: TERM_COLORS[i],

@@ -91,6 +91,21 @@ pub struct Figure {
     pub arrows: Vec<Arrow>,
     /// Arrow colour.
     pub arrow_color: [u8; 3],
+    /// Where the legend goes.
+    pub legend: Corner,
+}
+
+/// A corner of the plot area (for the legend).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Corner {
+    /// Top right (the default).
+    TopRight,
+    /// Top left.
+    TopLeft,
+    /// Bottom left.
+    BottomLeft,
+    /// Bottom right.
+    BottomRight,
 }
 
 impl Figure {
@@ -110,6 +125,7 @@ impl Figure {
             bands: Vec::new(),
             arrows: Vec::new(),
             arrow_color: [200, 30, 30],
+            legend: Corner::TopRight,
         }
     }
 
@@ -233,7 +249,12 @@ impl Figure {
         }
         let w = named.iter().map(|s| text_width(&s.name)).max().unwrap_or(0) + 40;
         let h = named.len() as i32 * 20 + 8;
-        let (x0, y0) = (area.x1 - w - 8, area.y0 + 8);
+        let (x0, y0) = match self.legend {
+            Corner::TopRight => (area.x1 - w - 8, area.y0 + 8),
+            Corner::TopLeft => (area.x0 + 8, area.y0 + 8),
+            Corner::BottomLeft => (area.x0 + 8, area.y1 - h - 8),
+            Corner::BottomRight => (area.x1 - w - 8, area.y1 - h - 8),
+        };
         fill_rect(img, x0, y0, x0 + w, y0 + h, [255, 255, 255]);
         rect_outline(img, x0, y0, x0 + w, y0 + h, [120, 120, 120]);
         for (i, s) in named.iter().enumerate() {
@@ -368,7 +389,11 @@ fn draw_series(img: &mut RgbImage, area: &PlotArea, s: &Series) {
     let pts: Vec<(f64, f64)> = s.points.iter().filter_map(|&p| area.to_px(p)).collect();
     match s.style {
         Style::Line(w) | Style::Dashed(w) => {
-            let dash = matches!(s.style, Style::Dashed(_)).then_some(8.0);
+            let dash = if matches!(s.style, Style::Dashed(_)) {
+                8.0
+            } else {
+                f64::INFINITY
+            };
             for pair in pts.windows(2) {
                 line(
                     img,
@@ -376,7 +401,7 @@ fn draw_series(img: &mut RgbImage, area: &PlotArea, s: &Series) {
                     pair[1],
                     f64::from(w),
                     s.color,
-                    dash.map(|d| (d, area)),
+                    Some((dash, area)),
                 );
             }
         }
@@ -419,8 +444,8 @@ fn draw_band(img: &mut RgbImage, area: &PlotArea, band: &Band) {
     }
 }
 
-/// A line of width `w` from `p` to `q`; with `dash = Some((period, area))` it is dashed and
-/// clipped to the plot area.
+/// A line of width `w` from `p` to `q`; with `dash = Some((period, area))` it is dashed (an
+/// infinite period draws it solid) and clipped to the plot area.
 fn line(
     img: &mut RgbImage,
     p: (f64, f64),
