@@ -18,3 +18,4 @@ pub mod ba;
 pub mod features;
 pub mod geometry;
 pub mod map;
+pub mod mapping;
