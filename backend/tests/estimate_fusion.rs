@@ -19,6 +19,10 @@ const GAP: (f64, f64) = (30.0, 32.0);
 const SIGMA_P: f64 = 1e-3;
 const SIGMA_R: f64 = 0.1 * std::f64::consts::PI / 180.0;
 const OUTLIER_FRACTION: f64 = 0.05;
+/// Outliers are off by up to ±0.1 rad (5.7°) per axis ...
+const OUTLIER_ROT_RAD: f64 = 0.1;
+/// ... and up to ±10 cm per axis.
+const OUTLIER_POS_M: f64 = 0.1;
 
 struct Run {
     positions: Vec<nalgebra::Vector3<f64>>,
@@ -51,7 +55,7 @@ fn observations(
             // see the same noise.
             let is_outlier = uniform(&mut rng, 0.0, 1.0) < OUTLIER_FRACTION;
             let wild = Vector6::from_fn(|i, _| {
-                let mag = if i < 3 { 0.1 } else { 0.1 };
+                let mag = if i < 3 { OUTLIER_ROT_RAD } else { OUTLIER_POS_M };
                 uniform(&mut rng, -mag, mag)
             });
             if (GAP.0..GAP.1).contains(&t) || t > DURATION_S {

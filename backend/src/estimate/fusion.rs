@@ -291,7 +291,7 @@ fn observation_at(obs: &[PoseObservation], t: f64, config: &FusionConfig) -> Opt
 
 fn check_times(times: &[f64], what: &str) -> Result<()> {
     for (k, w) in times.windows(2).enumerate() {
-        if !(w[1] > w[0]) {
+        if w[1].partial_cmp(&w[0]) != Some(std::cmp::Ordering::Greater) {
             return Err(err(format!(
                 "{what}: time {} at row {} does not increase after {}; sort the rows and drop \
                  duplicates",
