@@ -143,3 +143,88 @@ fn mapping_recovers_the_keyframe_trajectory() {
     let again = reconstruct(&frames, &MapperOptions::default()).unwrap();
     assert_eq!(recon, again);
 }
+
+/// `world_from_cam` near the table, looking along +y and down, sliding sideways.
+fn table_pose(i: usize, n: usize) -> Pose {
+    let s = i as f64 / n as f64;
+    let base = nalgebra::Matrix3::new(1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, -1.0, 0.0);
+    let tilt = so3_exp(&Vector3::new(-0.35, 0.0, 0.0));
+    let sway = so3_exp(&Vector3::new(0.0, 0.0, 0.15 * (3.0 * s).sin()));
+    let r = sway
+        * tilt
+        * UnitQuaternion::from_rotation_matrix(&nalgebra::Rotation3::from_matrix_unchecked(base));
+    let c = Vector3::new(-0.3 + 0.6 * s, -0.6 + 0.1 * s, 1.3 + 0.05 * (2.0 * s).sin());
+    Pose::from_parts(Translation3::from(c), r)
+}
+
+#[test]
+fn mapping_from_rendered_fisheye_frames() {
+    use kiwi_backend::vision::features::{FOV_MASK_MARGIN_RAD, GrayImage, fov_mask};
+    use kiwi_backend::vision::frontend::{FrameTracker, TrackerOptions};
+    use kiwi_fixtures::render::{Extras, LensRays, RenderOptions, render};
+    use kiwi_fixtures::scene::{Scene, SceneOptions};
+    use kiwi_fixtures::unit::{LensModel, SimUnit};
+
+    let size = 320;
+    let unit = SimUnit::x5("X5-MAP", 4, size, LensModel::Kb4).unwrap();
+    let camera = unit.lenses[0].camera.clone();
+    let rays = LensRays::new(&camera);
+    let scene = Scene::new(8, SceneOptions::default());
+    let n = 40;
+    let truth: Vec<Pose> = (0..n).map(|i| table_pose(i, n)).collect();
+    let mask = fov_mask(&camera, FOV_MASK_MARGIN_RAD);
+    let mut tracker = FrameTracker::new(TrackerOptions::default(), mask).unwrap();
+    let mut frames = Vec::new();
+    for (i, pose) in truth.iter().enumerate() {
+        let options = RenderOptions {
+            noise_key: i as u64,
+            ..RenderOptions::default()
+        };
+        let img = render(
+            &scene,
+            &rays,
+            &|_t| *pose,
+            0.0,
+            &Extras::default(),
+            &options,
+        );
+        let gray = GrayImage::from_rgb(img.width(), img.height(), img.as_raw()).unwrap();
+        frames.push(
+            tracker
+                .process(i as u32, i as f64 / 30.0, gray, &camera)
+                .unwrap(),
+        );
+    }
+    // 1 px ≈ 10 mrad at 320 px: thresholds scaled from the 960 px defaults.
+    let mut options = MapperOptions::default();
+    options.ransac.threshold_rad = 0.012;
+    options.triangulation.max_error_rad = 0.012;
+    options.ba.huber_rad = 0.012;
+    options.max_error_rad = 0.02;
+    let recon = reconstruct(&frames, &options).unwrap();
+    let est: Vec<Vector3<f64>> = recon
+        .frame_poses
+        .iter()
+        .map(|(_, p)| p.inverse().translation.vector)
+        .collect();
+    let tru: Vec<Vector3<f64>> = recon
+        .frame_poses
+        .iter()
+        .map(|(f, _)| truth[*f as usize].translation.vector)
+        .collect();
+    let (_, err) = align_and_measure(&est, &tru).unwrap();
+    eprintln!(
+        "rendered {size} px: {} keyframes, {} landmarks, {} of {n} frames tracked; ATE {:.2} mm \
+         rmse, {:.2} mm max, extent {:.3} m, {:.3} % of extent",
+        recon.keyframes.len(),
+        recon.landmarks.len(),
+        recon.frame_poses.len(),
+        err.rmse * 1e3,
+        err.max * 1e3,
+        err.extent,
+        100.0 * err.relative_rmse()
+    );
+    assert_eq!(recon.lost_at, None);
+    assert_eq!(recon.frame_poses.len(), n);
+    assert!(err.relative_rmse() < 0.005, "{err:?}");
+}

@@ -19,3 +19,4 @@ pub mod features;
 pub mod geometry;
 pub mod map;
 pub mod mapping;
+pub mod frontend;
