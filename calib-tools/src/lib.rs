@@ -7,9 +7,13 @@
 
 pub mod allan;
 pub mod av_delay;
+pub mod detect;
 pub mod error;
 pub mod export;
+pub mod intrinsics;
+pub mod lens_cli;
 pub mod plot;
 pub mod qr_clock;
+pub mod target;
 
 pub use error::CalibError;
