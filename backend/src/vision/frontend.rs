@@ -90,6 +90,7 @@ impl FrameTracker {
                     observations.push(TrackObservation {
                         track: *id,
                         bearing: tr.bearing,
+                        pixel: tr.pixel,
                     });
                 }
             }
@@ -115,6 +116,7 @@ impl FrameTracker {
                 observations.push(TrackObservation {
                     track: id,
                     bearing: kp.bearing,
+                    pixel: kp.pixel,
                 });
             }
         }

@@ -380,3 +380,113 @@ impl VisualMap {
         }
     }
 }
+
+/// Largest distance (px) between a keyframe's ORB keypoint and a tracked point for the keypoint
+/// to inherit the track's landmark (tracks start on ORB keypoints; KLT drifts sub-pixel).
+pub const ASSOCIATION_RADIUS_PX: f64 = 2.0;
+
+impl VisualMap {
+    /// Export a reconstruction: every keyframe keeps all its ORB features (`keyframe_features`,
+    /// one entry per keyframe, from the keyframe's image); a feature within
+    /// [`ASSOCIATION_RADIUS_PX`] of a tracked observation of a mapped track observes that
+    /// landmark. Landmarks that no feature describes are left out (they could never be matched);
+    /// a landmark's descriptor is the medoid of its features' descriptors.
+    pub fn from_reconstruction(
+        recon: &crate::vision::mapping::Reconstruction,
+        keyframe_features: &[crate::vision::features::FrameFeatures],
+        camera_name: &str,
+        lens: &str,
+        episode: &str,
+        camera: &dyn CameraModel,
+    ) -> Result<Self> {
+        if keyframe_features.len() != recon.keyframes.len() {
+            return Err(BackendError::Vision {
+                context: "map export".into(),
+                message: format!(
+                    "expected features for each of the {} keyframes, found {}",
+                    recon.keyframes.len(),
+                    keyframe_features.len()
+                ),
+            });
+        }
+        let mut map = Self::new(camera_name, lens, episode, camera);
+        // Track id → descriptors of the features that observe it.
+        let mut described: std::collections::BTreeMap<u64, Vec<Descriptor>> =
+            std::collections::BTreeMap::new();
+        let mut feature_track: Vec<Vec<Option<u64>>> = Vec::with_capacity(recon.keyframes.len());
+        let r2 = ASSOCIATION_RADIUS_PX * ASSOCIATION_RADIUS_PX;
+        for (kf, feats) in recon.keyframes.iter().zip(keyframe_features) {
+            let mapped: Vec<&crate::vision::mapping::TrackObservation> = kf
+                .observations
+                .iter()
+                .filter(|o| recon.landmarks.contains_key(&o.track))
+                .collect();
+            let mut used = std::collections::BTreeSet::new();
+            let mut tracks = Vec::with_capacity(feats.keypoints.len());
+            for (kp, d) in feats.keypoints.iter().zip(&feats.descriptors) {
+                let mut best: Option<(f64, u64)> = None;
+                for o in &mapped {
+                    let d2 = (o.pixel - kp.pixel).norm_squared();
+                    if d2 <= r2 && best.is_none_or(|b| d2 < b.0) {
+                        best = Some((d2, o.track));
+                    }
+                }
+                // One feature per track and keyframe: the strongest (features come sorted).
+                let track = best.map(|b| b.1).filter(|t| used.insert(*t));
+                if let Some(t) = track {
+                    described.entry(t).or_default().push(*d);
+                }
+                tracks.push(track);
+            }
+            feature_track.push(tracks);
+        }
+        let mut index: std::collections::BTreeMap<u64, u32> = std::collections::BTreeMap::new();
+        for (track, descs) in &described {
+            let Some(p) = recon.landmarks.get(track) else {
+                continue;
+            };
+            index.insert(*track, map.landmarks.len() as u32);
+            map.landmarks.push(MapLandmark {
+                position: [p.x, p.y, p.z],
+                descriptor: medoid(descs),
+            });
+        }
+        for ((kf, feats), tracks) in recon
+            .keyframes
+            .iter()
+            .zip(keyframe_features)
+            .zip(feature_track)
+        {
+            map.keyframes.push(MapKeyframe {
+                frame: kf.frame,
+                t: kf.t,
+                cam_from_map: MapPose::from_pose(&kf.cam_from_world),
+                features: feats
+                    .keypoints
+                    .iter()
+                    .zip(&feats.descriptors)
+                    .zip(tracks)
+                    .map(|((kp, d), t)| MapFeature {
+                        pixel: [kp.pixel.x, kp.pixel.y],
+                        bearing: [kp.bearing.x, kp.bearing.y, kp.bearing.z],
+                        descriptor: *d,
+                        landmark: t.and_then(|t| index.get(&t).copied()),
+                    })
+                    .collect(),
+            });
+        }
+        Ok(map)
+    }
+}
+
+/// The descriptor with the smallest summed Hamming distance to the others (first on ties).
+fn medoid(descs: &[Descriptor]) -> Descriptor {
+    let mut best = (u32::MAX, Descriptor([0; 4]));
+    for a in descs {
+        let total: u32 = descs.iter().map(|b| a.distance(b)).sum();
+        if total < best.0 {
+            best = (total, *a);
+        }
+    }
+    best.1
+}

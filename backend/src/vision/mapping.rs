@@ -12,7 +12,7 @@
 
 use std::collections::BTreeMap;
 
-use nalgebra::{Point3, Vector3};
+use nalgebra::{Point2, Point3, Vector3};
 
 use kiwi_core::geometry::Pose;
 
@@ -30,6 +30,8 @@ pub struct TrackObservation {
     pub track: u64,
     /// Unit bearing in the frame's camera.
     pub bearing: Vector3<f64>,
+    /// Pixel position (used to attach keyframe descriptors when a map is exported).
+    pub pixel: Point2<f64>,
 }
 
 /// A frame's tracks.
