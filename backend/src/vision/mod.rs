@@ -9,6 +9,10 @@
 //!   solved with faer.
 //! - [`align`]: Umeyama Sim(3) alignment of trajectories and absolute trajectory error.
 //! - [`features`]: ORB on raw fisheye images with masks, descriptor matching, KLT tracking.
+//! - [`frontend`]: frame-to-frame KLT tracking topped up with ORB keypoints → bearing tracks.
+//! - [`mapping`]: incremental mapping on bearing tracks (two-view init, P3P per frame,
+//!   keyframes, triangulation, local and global robust BA).
+//! - [`map`]: the versioned `.kmap` file and its export from a reconstruction.
 //!
 //! Determinism: every random choice comes from a seeded ChaCha8 generator and every reduction
 //! runs in a fixed order, so results are bit-identical across runs and thread counts.
@@ -16,7 +20,7 @@
 pub mod align;
 pub mod ba;
 pub mod features;
+pub mod frontend;
 pub mod geometry;
 pub mod map;
 pub mod mapping;
-pub mod frontend;
