@@ -6,4 +6,5 @@ pub mod chain;
 pub mod factors;
 pub mod files;
 pub mod fusion;
+pub mod placement;
 pub mod preint;
