@@ -37,7 +37,7 @@ fn placement_recovers_scene_from_front_map() {
         let rear = noisy(scene_from_imu * rear_from_imu.inverse(), &mut rng);
         if uniform(&mut rng, 0.0, 1.0) < 0.1 {
             // A failed relocalization: off by decimetres and degrees.
-            front = front * se3_exp(&Vector6::new(0.1, -0.05, 0.08, 0.3, -0.2, 0.25));
+            front *= se3_exp(&Vector6::new(0.1, -0.05, 0.08, 0.3, -0.2, 0.25));
         }
         pairs.push(PlacementPair {
             t,
