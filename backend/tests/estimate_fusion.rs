@@ -55,7 +55,11 @@ fn observations(
             // see the same noise.
             let is_outlier = uniform(&mut rng, 0.0, 1.0) < OUTLIER_FRACTION;
             let wild = Vector6::from_fn(|i, _| {
-                let mag = if i < 3 { OUTLIER_ROT_RAD } else { OUTLIER_POS_M };
+                let mag = if i < 3 {
+                    OUTLIER_ROT_RAD
+                } else {
+                    OUTLIER_POS_M
+                };
                 uniform(&mut rng, -mag, mag)
             });
             if (GAP.0..GAP.1).contains(&t) || t > DURATION_S {
