@@ -231,3 +231,33 @@ fn klt_tracks_follow_the_true_epipolar_geometry() {
     .unwrap();
     assert_eq!(tracks, again);
 }
+
+#[test]
+fn features_and_tracks_do_not_depend_on_thread_counts() {
+    let rig = rig(LensModel::Kb4);
+    let w1 = pose(Vector3::zeros(), Vector3::zeros());
+    let w2 = pose(Vector3::new(0.02, 0.0, 0.0), Vector3::zeros());
+    let (a, b) = (shoot(&rig, w1, 1), shoot(&rig, w2, 2));
+    let mask = fov_mask(&rig.camera, FOV_MASK_MARGIN_RAD);
+    let run = |threads: i32| {
+        opencv::core::set_num_threads(threads).unwrap();
+        let mut orb = OrbExtractor::new(&OrbOptions::default()).unwrap();
+        let f = orb.extract(&a, Some(&mask), &rig.camera).unwrap();
+        let pts: Vec<Point2<f64>> = f.keypoints.iter().map(|k| k.pixel).collect();
+        let t = track_klt(
+            &a,
+            &b,
+            &pts,
+            Some(&mask),
+            &rig.camera,
+            &KltOptions::default(),
+        )
+        .unwrap();
+        (f, t)
+    };
+    let one = run(1);
+    let two = run(2);
+    let default = run(-1);
+    assert_eq!(one, two);
+    assert_eq!(one, default);
+}
