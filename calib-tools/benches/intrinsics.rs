@@ -31,7 +31,7 @@ fn main() {
     let target = AprilGridTarget::load(&out.join("target.yaml")).unwrap();
     let images = out.join("intrinsics/front/frames");
     let t0 = Instant::now();
-    let set = detect_folder(&images, &target, &DetectOptions { progress: false }).unwrap();
+    let set = detect_folder(&images, &target, &DetectOptions::default()).unwrap();
     let detect_s = t0.elapsed().as_secs_f64();
     let t1 = Instant::now();
     let r = calibrate(&set, &IntrinsicsOptions::default()).unwrap();

@@ -35,6 +35,7 @@ use opencv::core::{Mat, Point2f, Size, TermCriteria, TermCriteria_Type, Vector};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
+use kiwi_core::camera::{Camera, CameraModel};
 use kiwi_core::io::write_atomic;
 
 use crate::error::{CalibError, Result};
@@ -357,6 +358,16 @@ impl Detector {
                 dropped += 1;
             }
         }
+        self.refine_and_number(gray, &raw, dropped)
+    }
+
+    /// Refine the tags' corners, drop tags whose refinement moved too far, number the corners.
+    fn refine_and_number(
+        &self,
+        gray: &GrayImage,
+        raw: &[(u32, [Point2<f64>; 4])],
+        dropped: usize,
+    ) -> Result<Detection> {
         if raw.is_empty() {
             return Ok(Detection {
                 tags: Vec::new(),
@@ -364,7 +375,7 @@ impl Detector {
                 dropped_tags: dropped,
             });
         }
-        let refined = refine_corners(gray, &raw)?;
+        let refined = refine_corners(gray, raw)?;
         let mut out = Detection {
             tags: Vec::new(),
             corners: Vec::new(),
@@ -397,6 +408,95 @@ impl Detector {
     }
 }
 
+impl Detector {
+    /// Tags found in perspective views rendered through `camera` around the periphery, that
+    /// `known` does not already hold; corners mapped back and refined in the original image.
+    pub fn detect_rectified(
+        &self,
+        gray: &GrayImage,
+        camera: &Camera,
+        known: &Detection,
+    ) -> Result<Detection> {
+        let mut have: BTreeSet<u32> = known.tags.iter().copied().collect();
+        let (w, h) = (f64::from(gray.width()), f64::from(gray.height()));
+        let half = f64::from(RECTIFY_SIDE - 1) / 2.0;
+        let f = half / (RECTIFY_FOV_DEG.to_radians() / 2.0).tan();
+        let mut raw: Vec<(u32, [Point2<f64>; 4])> = Vec::new();
+        for theta in RECTIFY_THETAS_DEG {
+            if theta.to_radians() > camera.valid_fov() / 2.0 {
+                continue;
+            }
+            for k in 0..RECTIFY_AZIMUTHS {
+                let phi = std::f64::consts::TAU * (k as f64 + 0.5 * (theta / 40.0).floor())
+                    / RECTIFY_AZIMUTHS as f64;
+                let z =
+                    kiwi_core::camera::bearing_from_angles(theta.to_radians(), phi).into_inner();
+                let helper = if z.x.abs() < 0.9 {
+                    Vector3::x()
+                } else {
+                    Vector3::y()
+                };
+                let y = z.cross(&helper).normalize();
+                let x = y.cross(&z);
+                let rot = nalgebra::Matrix3::from_columns(&[x, y, z]);
+                let to_fisheye = |u: f64, v: f64| -> Option<Point2<f64>> {
+                    let ray = rot * Vector3::new((u - half) / f, (v - half) / f, 1.0);
+                    camera.project(&ray)
+                };
+                let mut view = GrayImage::new(RECTIFY_SIDE, RECTIFY_SIDE);
+                let mut inside = 0usize;
+                for (u, v, px) in view.enumerate_pixels_mut() {
+                    if let Some(p) = to_fisheye(f64::from(u), f64::from(v))
+                        && p.x >= 0.0
+                        && p.y >= 0.0
+                        && p.x < w - 1.0
+                        && p.y < h - 1.0
+                    {
+                        px[0] = bilinear(gray, p.x, p.y);
+                        inside += 1;
+                    }
+                }
+                if inside * 4 < (RECTIFY_SIDE * RECTIFY_SIDE) as usize {
+                    continue;
+                }
+                let tags = self.inner.detect(&DynamicImage::ImageLuma8(view));
+                for (id, quad) in tags {
+                    if id as usize >= self.target.tag_count() || have.contains(&id) {
+                        continue;
+                    }
+                    let mapped: Option<Vec<Point2<f64>>> = quad
+                        .iter()
+                        .map(|(u, v)| to_fisheye(f64::from(*u), f64::from(*v)))
+                        .collect();
+                    let Some(mapped) = mapped else { continue };
+                    let pts = [mapped[0], mapped[1], mapped[2], mapped[3]];
+                    let inside = pts.iter().all(|p| {
+                        p.x >= MIN_BORDER_DISTANCE_PX
+                            && p.y >= MIN_BORDER_DISTANCE_PX
+                            && p.x <= w - 1.0 - MIN_BORDER_DISTANCE_PX
+                            && p.y <= h - 1.0 - MIN_BORDER_DISTANCE_PX
+                    });
+                    if inside {
+                        have.insert(id);
+                        raw.push((id, pts));
+                    }
+                }
+            }
+        }
+        self.refine_and_number(gray, &raw, 0)
+    }
+}
+
+/// Bilinear sample of a grey image at a sub-pixel position inside it.
+fn bilinear(img: &GrayImage, x: f64, y: f64) -> u8 {
+    let (x0, y0) = (x.floor() as u32, y.floor() as u32);
+    let (fx, fy) = (x - f64::from(x0), y - f64::from(y0));
+    let p = |xx: u32, yy: u32| f64::from(img.get_pixel(xx, yy)[0]);
+    let top = p(x0, y0) * (1.0 - fx) + p(x0 + 1, y0) * fx;
+    let bottom = p(x0, y0 + 1) * (1.0 - fx) + p(x0 + 1, y0 + 1) * fx;
+    (top * (1.0 - fy) + bottom * fy).round().clamp(0.0, 255.0) as u8
+}
+
 /// `cornerSubPix` on every tag corner (4 per tag, in order).
 fn refine_corners(gray: &GrayImage, tags: &[(u32, [Point2<f64>; 4])]) -> Result<Vec<Point2<f64>>> {
     let cv = |e: opencv::Error| CalibError::Internal(format!("OpenCV cornerSubPix: {e}"));
@@ -427,12 +527,55 @@ fn refine_corners(gray: &GrayImage, tags: &[(u32, [Point2<f64>; 4])]) -> Result<
         .collect())
 }
 
+/// A first lens calibration from the first-pass corners (KB4, no coverage check), or `None`
+/// if they do not support one.
+fn bootstrap_camera(images: &[ImageCorners], target: &AprilGridTarget) -> Option<Camera> {
+    let mut set = CornerSet::new(Some(*target));
+    set.images = images
+        .iter()
+        .filter(|i| i.tags.len() >= MIN_TAGS_PER_IMAGE)
+        .cloned()
+        .collect();
+    let options = crate::intrinsics::IntrinsicsOptions {
+        check_coverage: false,
+        ..crate::intrinsics::IntrinsicsOptions::default()
+    };
+    match crate::intrinsics::calibrate(&set, &options) {
+        Ok(r) => Some(r.camera),
+        Err(e) => {
+            tracing::info!("no rectified second detection pass: {e}");
+            None
+        }
+    }
+}
+
 /// Options of [`detect_folder`].
 #[derive(Debug, Clone)]
 pub struct DetectOptions {
     /// Show a progress bar on stderr.
     pub progress: bool,
+    /// Second pass on locally rectified (perspective) views of the periphery, through a lens
+    /// calibrated from the first pass: finds the small, strongly distorted tags the first pass
+    /// misses.
+    pub rectify: bool,
 }
+
+impl Default for DetectOptions {
+    fn default() -> Self {
+        Self {
+            progress: false,
+            rectify: true,
+        }
+    }
+}
+
+/// Off-axis angles (deg) of the rectified views' centres, and azimuths per ring.
+const RECTIFY_THETAS_DEG: [f64; 4] = [40.0, 65.0, 88.0, 108.0];
+const RECTIFY_AZIMUTHS: usize = 8;
+/// Side (px) and full field of view (deg) of a rectified view: wide enough that neighbouring
+/// views overlap by a tag, small enough that the view is nearly undistorted.
+const RECTIFY_SIDE: u32 = 360;
+const RECTIFY_FOV_DEG: f64 = 64.0;
 
 /// Detect the target in every image of a folder, in parallel; images with fewer than
 /// [`MIN_TAGS_PER_IMAGE`] tags are left out. Errors on an empty folder, an unreadable image,
@@ -455,6 +598,9 @@ pub fn detect_folder(
     } else {
         ProgressBar::hidden()
     };
+    if options.rectify {
+        bar.set_length(2 * files.len() as u64);
+    }
     let results: Vec<Result<ImageCorners>> = files
         .par_iter()
         .map(|path| {
@@ -475,11 +621,10 @@ pub fn detect_folder(
             })
         })
         .collect();
-    bar.finish_and_clear();
-    let mut set = CornerSet::new(Some(*target));
+    let mut all: Vec<ImageCorners> = Vec::with_capacity(results.len());
     for r in results {
         let img = r?;
-        if let Some(first) = set.images.first()
+        if let Some(first) = all.first()
             && (first.width, first.height) != (img.width, img.height)
         {
             return Err(CalibError::Input {
@@ -490,10 +635,40 @@ pub fn detect_folder(
                 ),
             });
         }
-        if img.tags.len() >= MIN_TAGS_PER_IMAGE {
-            set.images.push(img);
+        all.push(img);
+    }
+    if options.rectify
+        && let Some(camera) = bootstrap_camera(&all, target)
+    {
+        let added: Vec<Result<Detection>> = files
+            .par_iter()
+            .zip(all.par_iter())
+            .map(|(path, img)| {
+                let gray = load_gray(path)?;
+                let known = Detection {
+                    tags: img.tags.clone(),
+                    corners: Vec::new(),
+                    dropped_tags: 0,
+                };
+                let found = detector.detect_rectified(&gray, &camera, &known);
+                bar.inc(1);
+                found
+            })
+            .collect();
+        for (img, extra) in all.iter_mut().zip(added) {
+            let extra = extra?;
+            img.tags.extend(extra.tags);
+            img.tags.sort_unstable();
+            img.corners.extend(extra.corners);
+            img.corners.sort_by_key(|c| c.id);
         }
     }
+    bar.finish_and_clear();
+    let mut set = CornerSet::new(Some(*target));
+    set.images = all
+        .into_iter()
+        .filter(|img| img.tags.len() >= MIN_TAGS_PER_IMAGE)
+        .collect();
     if set.images.is_empty() {
         return Err(CalibError::Input {
             path: dir.to_path_buf(),

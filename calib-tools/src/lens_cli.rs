@@ -151,7 +151,14 @@ pub fn run_target(cmd: &TargetCommand) -> Result<Vec<PathBuf>> {
 /// Run `kiwi-calib detect`; returns the corners.
 pub fn run_detect(args: &DetectArgs) -> Result<CornerSet> {
     let target = AprilGridTarget::load(&args.target)?;
-    let set = detect_folder(&args.images, &target, &DetectOptions { progress: true })?;
+    let set = detect_folder(
+        &args.images,
+        &target,
+        &DetectOptions {
+            progress: true,
+            ..DetectOptions::default()
+        },
+    )?;
     set.save(&args.out)?;
     Ok(set)
 }
@@ -174,7 +181,14 @@ pub fn run_intrinsics(args: &IntrinsicsArgs) -> Result<serde_json::Value> {
                 });
             };
             let target = AprilGridTarget::load(target)?;
-            let set = detect_folder(images, &target, &DetectOptions { progress: true })?;
+            let set = detect_folder(
+                images,
+                &target,
+                &DetectOptions {
+                    progress: true,
+                    ..DetectOptions::default()
+                },
+            )?;
             std::fs::create_dir_all(&args.out).map_err(|e| CalibError::Input {
                 path: args.out.clone(),
                 message: format!("cannot create the output folder: {e}"),
@@ -214,7 +228,7 @@ pub fn run_intrinsics(args: &IntrinsicsArgs) -> Result<serde_json::Value> {
 pub fn run_bench(args: &BenchIntrinsicsArgs) -> Result<String> {
     let target = AprilGridTarget::load(&args.target)?;
     let t0 = Instant::now();
-    let set = detect_folder(&args.images, &target, &DetectOptions { progress: false })?;
+    let set = detect_folder(&args.images, &target, &DetectOptions::default())?;
     let t_detect = t0.elapsed().as_secs_f64();
     let t1 = Instant::now();
     let options = IntrinsicsOptions {

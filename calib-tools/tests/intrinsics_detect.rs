@@ -25,7 +25,7 @@ fn detection_matches_truth_and_full_path_calibrates() {
     let set = detect_folder(
         &cap.join("intrinsics/front/frames"),
         &target,
-        &DetectOptions { progress: false },
+        &DetectOptions::default(),
     )
     .unwrap();
     let visible: usize = truth.values().map(Vec::len).sum();
@@ -60,10 +60,12 @@ fn detection_matches_truth_and_full_path_calibrates() {
     );
     assert!(wrong * 100 <= n, "{wrong} of {n} corners are wrong");
     assert!(med < 0.3, "median corner error {med} px");
-    assert!(5 * n >= 2 * visible, "only {n} of {visible} corners found");
+    // Measured: 5256 of 5507 (95 %) with the rectified second pass; 2424 (44 %) without.
+    assert!(10 * n >= 9 * visible, "only {n} of {visible} corners found");
 
-    // The full path: detected corners → fit. Looser than the corners-file acceptance because
-    // the detector's own error (above) replaces the 0.3 px Gaussian noise.
+    // The full path: detected corners → fit, with the tolerances on fx, fy, cx, cy and
+    // the projection (measured fx 0.014 %, cx 0.005 px, projection 0.038 px); the RMS criterion
+    // does not apply, as the detector's own error (~0.09 px) replaces the injected noise.
     let r = calibrate(&set, &IntrinsicsOptions::default()).unwrap();
     let t = truth_cam.params();
     let p = r.camera.params();
@@ -81,10 +83,10 @@ fn detection_matches_truth_and_full_path_calibrates() {
         r.n_corners,
         r.n_rejected
     );
-    assert!((p[0] - t[0]).abs() / t[0] < 5e-3);
-    assert!((p[1] - t[1]).abs() / t[1] < 5e-3);
-    assert!((p[2] - t[2]).abs() < 1.5 && (p[3] - t[3]).abs() < 1.5);
-    assert!(proj < 0.5, "projection RMS {proj} px");
+    assert!((p[0] - t[0]).abs() / t[0] < 1e-3);
+    assert!((p[1] - t[1]).abs() / t[1] < 1e-3);
+    assert!((p[2] - t[2]).abs() < 0.3 && (p[3] - t[3]).abs() < 0.3);
+    assert!(proj < 0.05, "projection RMS {proj} px");
 }
 
 #[test]
@@ -109,7 +111,7 @@ fn tumvi_real_frame_finds_at_least_30_of_36_tags() {
 fn clear_errors() {
     let dir = tempfile::tempdir().unwrap();
     let target = sim_target();
-    let opts = DetectOptions { progress: false };
+    let opts = DetectOptions::default();
     // Empty folder.
     let empty = dir.path().join("empty");
     std::fs::create_dir_all(&empty).unwrap();
