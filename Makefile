@@ -44,6 +44,7 @@ test: deps
 bench: deps
 	cargo bench -p kiwi-fixtures --bench render
 	cargo bench -p kiwi-backend --bench sync
+	cargo bench -p kiwi-calib --bench intrinsics
 
 clean:
 	cargo clean
