@@ -17,8 +17,8 @@ const HEAT_BINS: u32 = 48;
 /// Heat-map cell size in the PNG (pixels).
 const HEAT_CELL: u32 = 12;
 /// Residual arrows are drawn this many times longer than they are, in units of the image width
-/// per RMS, so a typical arrow is about 2 % of the image.
-const ARROW_LENGTH_PER_RMS: f64 = 0.02;
+/// per RMS, so a typical arrow is under 1 % of the image and the field stays readable.
+const ARROW_LENGTH_PER_RMS: f64 = 0.008;
 
 /// Files written by [`write_outputs`].
 #[derive(Debug, Clone, serde::Serialize)]
