@@ -45,6 +45,9 @@ bench: deps
 	cargo bench -p kiwi-fixtures --bench render
 	cargo bench -p kiwi-backend --bench sync
 	cargo bench -p kiwi-calib --bench intrinsics
+	cargo bench -p kiwi-calib --bench imu_noise
+	cargo bench -p kiwi-backend --bench fuse
+	cargo bench -p kiwi-backend --bench vision
 
 clean:
 	cargo clean
