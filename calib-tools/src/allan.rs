@@ -634,7 +634,7 @@ pub fn oadev_at(x: &[f64], rate_hz: f64, m: usize) -> (f64, usize) {
         return (f64::NAN, 0);
     }
     let s = second_difference_energy(x, m, 0, n);
-    ((s / (2.0 * n as f64)).sqrt() / m as f64 * rate_hz, n)
+    (adev_from_energy(s, n, m, rate_hz), n)
 }
 
 /// One axis's Allan deviation curve.
@@ -695,7 +695,7 @@ pub fn oadev_axes(axes: Vec<Vec<f64>>, rate_hz: f64, m: &[usize]) -> Vec<AdevCur
                 adev.push(if n == 0 {
                     f64::NAN
                 } else {
-                    (s / (2.0 * n as f64)).sqrt() / mi as f64 * rate_hz
+                    adev_from_energy(s, n, mi, rate_hz)
                 });
             }
             offset += blocks[a];
@@ -707,6 +707,12 @@ pub fn oadev_axes(axes: Vec<Vec<f64>>, rate_hz: f64, m: &[usize]) -> Vec<AdevCur
             }
         })
         .collect()
+}
+
+/// Overlapping ADEV from the sum `s` of `n` squared second differences at factor `m`
+/// (allantools' `sqrt(s / 2n) / m · rate`).
+fn adev_from_energy(s: f64, n: usize, m: usize, rate_hz: f64) -> f64 {
+    (s / (2.0 * n as f64)).sqrt() / m as f64 * rate_hz
 }
 
 /// `Σ (x[i+2m] − 2x[i+m] + x[i])²` over `i` in `[start, start + len)` ∩ `[0, N+1−2m)`.
@@ -1376,15 +1382,7 @@ pub fn plot(report: &NoiseReport, path: &Path) -> Result<()> {
     for (i, p) in panels.iter().enumerate() {
         image::imageops::replace(&mut out, p, 0, i64::from(h) * i as i64);
     }
-    let mut bytes = Vec::new();
-    image::DynamicImage::ImageRgb8(out)
-        .write_to(
-            &mut std::io::Cursor::new(&mut bytes),
-            image::ImageFormat::Png,
-        )
-        .map_err(|e| CalibError::Internal(format!("encoding {}: {e}", path.display())))?;
-    kiwi_core::io::write_atomic(path, &bytes)?;
-    Ok(())
+    crate::plot::save_png(out, path)
 }
 
 fn fmt1(v: f64) -> String {

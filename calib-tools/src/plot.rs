@@ -131,16 +131,7 @@ impl Figure {
 
     /// Write the chart as a PNG, atomically.
     pub fn save_png(&self, path: &Path) -> Result<()> {
-        let image = self.render();
-        let mut bytes = Vec::new();
-        image::DynamicImage::ImageRgb8(image)
-            .write_to(
-                &mut std::io::Cursor::new(&mut bytes),
-                image::ImageFormat::Png,
-            )
-            .map_err(|e| CalibError::Internal(format!("encoding {}: {e}", path.display())))?;
-        kiwi_core::io::write_atomic(path, &bytes)?;
-        Ok(())
+        save_png(self.render(), path)
     }
 
     /// Render the chart.
@@ -514,6 +505,19 @@ fn rect_outline(img: &mut RgbImage, x0: i32, y0: i32, x1: i32, y1: i32, color: [
     hline(img, x0, x1, y1, color);
     vline(img, x0, y0, y1, color);
     vline(img, x1, y0, y1, color);
+}
+
+/// Encode an image as PNG and write it atomically (every report image goes through here).
+pub fn save_png(image: RgbImage, path: &Path) -> Result<()> {
+    let mut bytes = Vec::new();
+    image::DynamicImage::ImageRgb8(image)
+        .write_to(
+            &mut std::io::Cursor::new(&mut bytes),
+            image::ImageFormat::Png,
+        )
+        .map_err(|e| CalibError::Internal(format!("encoding {}: {e}", path.display())))?;
+    kiwi_core::io::write_atomic(path, &bytes)?;
+    Ok(())
 }
 
 /// Fill the rectangle `[x0, x1] × [y0, y1]`.

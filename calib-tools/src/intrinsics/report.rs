@@ -99,14 +99,7 @@ pub fn write_outputs(
 }
 
 fn save_png(img: RgbImage, path: &Path) -> Result<PathBuf> {
-    let mut bytes = Vec::new();
-    image::DynamicImage::ImageRgb8(img)
-        .write_to(
-            &mut std::io::Cursor::new(&mut bytes),
-            image::ImageFormat::Png,
-        )
-        .map_err(|e| CalibError::Internal(format!("encoding {}: {e}", path.display())))?;
-    write_atomic(path, &bytes)?;
+    crate::plot::save_png(img, path)?;
     Ok(path.to_path_buf())
 }
 
