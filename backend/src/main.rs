@@ -5,6 +5,8 @@ use std::path::PathBuf;
 use anyhow::Result;
 use clap::{Parser, Subcommand};
 
+mod vision_cli;
+
 /// Reconstruct KIWI episodes: audio sync, fisheye maps, metric recovery, localization, IMU
 /// fusion, gripper opening, head pose, floor height, dataset export.
 #[derive(Parser)]
@@ -97,6 +99,12 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Build a visual map (.kmap) from one lens of a mapping episode: KLT/ORB tracks,
+    /// incremental mapping with bundle adjustment, keyframe descriptors, place recognition.
+    Map(vision_cli::MapArgs),
+    /// Localize every frame of one lens of an episode against a frozen map and write
+    /// poses.csv (`map_from_cam`; status tracked, relocalized or lost).
+    Localize(vision_cli::LocalizeArgs),
     /// Check a session: session.toml, unit calibrations and every prepared episode's files.
     Inspect {
         /// The session's session.toml.
@@ -323,6 +331,8 @@ fn main() -> Result<()> {
                 );
             }
         }
+        Command::Map(args) => vision_cli::run_map(&args)?,
+        Command::Localize(args) => vision_cli::run_localize(&args)?,
         Command::Inspect { session, json } => {
             let report = kiwi_backend::inspect::inspect_session(&session)?;
             if json {

@@ -1,5 +1,6 @@
 //! The visual map file: exact round trip, validation errors that name the field, and refusal to
-//! localize another lens model, resolution, lens or calibration.
+//! localize another lens model, resolution or lens (another calibration of the same model is
+//! served: the rear map is shared by both wrists' units); schema 1 files still load.
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
 use kiwi_backend::vision::features::Descriptor;
@@ -54,6 +55,7 @@ fn sample_map() -> VisualMap {
             ],
         });
     }
+    map.train_vocabulary();
     map
 }
 
@@ -103,11 +105,38 @@ fn map_refuses_other_lenses_with_a_clear_error() {
     let mut p = other.params().to_vec();
     p[0] += 1.0;
     other.set_params(&p).unwrap();
-    let err = map
-        .check_query_lens("rear", &other)
-        .unwrap_err()
-        .to_string();
-    assert!(err.contains("calibration"), "{err}");
+    // Another unit's calibration of the same model and size is served.
+    map.check_query_lens("rear", &other).unwrap();
+}
+
+#[test]
+fn schema_1_maps_still_load_and_learn_a_vocabulary() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("old.kmap");
+    let mut map = sample_map();
+    map.schema_version = 1;
+    map.vocabulary = None;
+    // Keyframe 1 sees other things than keyframe 0.
+    map.keyframes[1].features[0].descriptor = Descriptor([u64::MAX; 4]);
+    map.keyframes[1].features[1].descriptor = Descriptor([u64::MAX, 0, u64::MAX, 0]);
+    std::fs::write(&path, serde_json::to_string(&map).unwrap()).unwrap();
+    let mut back = VisualMap::load(&path).unwrap();
+    assert_eq!(back.schema_version, 1);
+    assert!(back.vocabulary.is_none());
+    let db = back.keyframe_database();
+    assert!(back.vocabulary.is_some());
+    let query = back.vocabulary.as_ref().unwrap().bow(&[
+        Descriptor([u64::MAX; 4]),
+        Descriptor([u64::MAX, 0, u64::MAX, 0]),
+    ]);
+    let hits = db.query(&query, 5);
+    assert_eq!(hits[0].1, 1, "{hits:?}");
+    assert!(hits[0].0 > 0.99, "{hits:?}");
+    // A schema-2 file without its vocabulary is refused, naming the field.
+    map.schema_version = MAP_SCHEMA_VERSION;
+    std::fs::write(&path, serde_json::to_string(&map).unwrap()).unwrap();
+    let err = VisualMap::load(&path).unwrap_err().to_string();
+    assert!(err.contains("vocabulary"), "{err}");
 }
 
 #[test]

@@ -528,3 +528,115 @@ pub fn track_klt(
     }
     Ok(out)
 }
+
+/// A frame's KLT image pyramid (with derivatives), built once and reused for the forward and
+/// backward passes and for tracking into the next frame.
+pub struct KltPyramid {
+    levels: Vector<Mat>,
+    width: u32,
+    height: u32,
+}
+
+impl KltPyramid {
+    /// Build the pyramid of `image` for `options`' window and levels (the pixels are copied).
+    pub fn new(image: &GrayImage, options: &KltOptions) -> Result<Self> {
+        let img = image.as_mat()?;
+        let mut levels = Vector::<Mat>::new();
+        opencv::video::build_optical_flow_pyramid(
+            &img,
+            &mut levels,
+            Size::new(options.window, options.window),
+            options.levels,
+            true,
+            opencv::core::BORDER_REFLECT_101,
+            opencv::core::BORDER_CONSTANT,
+            false,
+        )
+        .map_err(cv_err("KLT pyramid"))?;
+        Ok(Self {
+            levels,
+            width: image.width,
+            height: image.height,
+        })
+    }
+}
+
+/// [`track_klt`] on prebuilt pyramids (same window and levels as they were built with).
+pub fn track_klt_pyramids(
+    prev: &KltPyramid,
+    next: &KltPyramid,
+    points: &[Point2<f64>],
+    mask: Option<&Mask>,
+    camera: &dyn CameraModel,
+    options: &KltOptions,
+) -> Result<Vec<Option<Track>>> {
+    if points.is_empty() {
+        return Ok(Vec::new());
+    }
+    if (prev.width, prev.height) != (next.width, next.height) {
+        return Err(BackendError::Vision {
+            context: "KLT".into(),
+            message: format!(
+                "expected frames of one size, found {}x{} then {}x{}",
+                prev.width, prev.height, next.width, next.height
+            ),
+        });
+    }
+    let pts: Vector<Point2f> = points
+        .iter()
+        .map(|p| Point2f::new(p.x as f32, p.y as f32))
+        .collect();
+    let criteria = TermCriteria::new(
+        TermCriteria_Type::COUNT as i32 + TermCriteria_Type::EPS as i32,
+        options.iterations,
+        0.01,
+    )
+    .map_err(cv_err("KLT"))?;
+    let win = Size::new(options.window, options.window);
+    let run = |from: &Vector<Mat>,
+               to: &Vector<Mat>,
+               src: &Vector<Point2f>|
+     -> Result<(Vector<Point2f>, Vector<u8>)> {
+        let mut dst = Vector::<Point2f>::new();
+        let mut status = Vector::<u8>::new();
+        let mut err = Vector::<f32>::new();
+        opencv::video::calc_optical_flow_pyr_lk(
+            from,
+            to,
+            src,
+            &mut dst,
+            &mut status,
+            &mut err,
+            win,
+            options.levels,
+            criteria,
+            0,
+            1e-4,
+        )
+        .map_err(cv_err("KLT"))?;
+        Ok((dst, status))
+    };
+    let (fwd, st1) = run(&prev.levels, &next.levels, &pts)?;
+    let (bwd, st2) = run(&next.levels, &prev.levels, &fwd)?;
+    let mut out = Vec::with_capacity(points.len());
+    for i in 0..points.len() {
+        let ok = st1.get(i).unwrap_or(0) != 0 && st2.get(i).unwrap_or(0) != 0;
+        let (Ok(f), Ok(back)) = (fwd.get(i), bwd.get(i)) else {
+            out.push(None);
+            continue;
+        };
+        let fb = (f64::from(back.x) - points[i].x).hypot(f64::from(back.y) - points[i].y);
+        let pixel = Point2::new(f64::from(f.x), f64::from(f.y));
+        let in_mask =
+            mask.is_none_or(|m| m.get(pixel.x.round() as i64, pixel.y.round() as i64) > 0);
+        if !ok || fb > options.max_forward_backward_px || !in_mask || !camera.in_image(&pixel) {
+            out.push(None);
+            continue;
+        }
+        out.push(camera.unproject(&pixel).map(|b| Track {
+            pixel,
+            bearing: b.into_inner(),
+        }));
+    }
+    Ok(out)
+}

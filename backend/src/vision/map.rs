@@ -4,8 +4,8 @@
 //! resolution), keyframes with their poses and features (pixel, bearing, ORB descriptor, the
 //! landmark each feature observes), and landmarks with positions and a representative
 //! descriptor. Poses are `cam_from_map`; the map frame and scale are arbitrary (metric recovery
-//! is a later stage). A map refuses to serve a lens of another model, resolution or
-//! calibration, with an error that says which map to build instead.
+//! is a later stage). A map refuses to serve a lens of another name, model or resolution, with
+//! an error that says which map to build instead.
 //!
 //! Descriptors are written as 64 hexadecimal digits (256 bits, little-endian words) so that no
 //! JSON reader loses precision.
@@ -20,14 +20,14 @@ use kiwi_core::geometry::Pose;
 
 use crate::error::{BackendError, Result};
 use crate::vision::features::Descriptor;
+use crate::vision::place::{KeyframeDatabase, Vocabulary};
 
 /// The `format` tag of a map file.
 pub const MAP_FORMAT: &str = "kiwi-visual-map";
-/// The schema version this build writes and reads.
-pub const MAP_SCHEMA_VERSION: u32 = 1;
-/// Largest relative difference of a camera parameter between map and query lens: beyond it the
-/// query is another calibration (1e-9 tolerates text round trips, nothing else).
-const PARAM_TOLERANCE: f64 = 1e-9;
+/// The schema version this build writes (2: with the place-recognition vocabulary).
+pub const MAP_SCHEMA_VERSION: u32 = 2;
+/// The oldest schema this build still reads (1: no vocabulary; one is learned on load).
+pub const MAP_SCHEMA_OLDEST: u32 = 1;
 /// Largest deviation of a unit vector's norm from one in a valid file.
 const UNIT_TOLERANCE: f64 = 1e-6;
 
@@ -200,6 +200,10 @@ pub struct VisualMap {
     pub keyframes: Vec<MapKeyframe>,
     /// Landmarks (indexed by [`MapFeature::landmark`]).
     pub landmarks: Vec<MapLandmark>,
+    /// Place-recognition vocabulary learned from the keyframes' descriptors (schema 2; absent in
+    /// schema 1 files, then learned on load).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub vocabulary: Option<Vocabulary>,
 }
 
 fn map_err(path: &Path, message: String) -> BackendError {
@@ -230,6 +234,34 @@ impl VisualMap {
             camera: MapCamera::from_camera(camera),
             keyframes: Vec::new(),
             landmarks: Vec::new(),
+            vocabulary: None,
+        }
+    }
+
+    /// Learn the place-recognition vocabulary from the keyframes' descriptors (replaces any).
+    pub fn train_vocabulary(&mut self) {
+        let docs: Vec<Vec<Descriptor>> = self
+            .keyframes
+            .iter()
+            .map(|k| k.features.iter().map(|f| f.descriptor).collect())
+            .collect();
+        self.vocabulary = Some(Vocabulary::train(&docs));
+    }
+
+    /// The keyframe database for place recognition (learns a vocabulary first if the map has
+    /// none, as schema-1 maps do not).
+    pub fn keyframe_database(&mut self) -> KeyframeDatabase {
+        if self.vocabulary.is_none() {
+            self.train_vocabulary();
+        }
+        let docs: Vec<Vec<Descriptor>> = self
+            .keyframes
+            .iter()
+            .map(|k| k.features.iter().map(|f| f.descriptor).collect())
+            .collect();
+        match &self.vocabulary {
+            Some(v) => KeyframeDatabase::build(v, &docs),
+            None => KeyframeDatabase::default(),
         }
     }
 
@@ -245,14 +277,25 @@ impl VisualMap {
                 ),
             ));
         }
-        if self.schema_version != MAP_SCHEMA_VERSION {
+        if !(MAP_SCHEMA_OLDEST..=MAP_SCHEMA_VERSION).contains(&self.schema_version) {
             return Err(map_err(
                 path,
                 format!(
-                    "field `schema_version`: this kiwi reads version {MAP_SCHEMA_VERSION}, found {}; \
-                     rebuild the map with this kiwi (`kiwi map`)",
+                    "field `schema_version`: this kiwi reads versions {MAP_SCHEMA_OLDEST} to \
+                     {MAP_SCHEMA_VERSION}, found {}; rebuild the map with this kiwi (`kiwi map`)",
                     self.schema_version
                 ),
+            ));
+        }
+        if let Some(v) = &self.vocabulary {
+            v.check()
+                .map_err(|e| map_err(path, format!("field `vocabulary`: {e}")))?;
+        } else if self.schema_version >= 2 {
+            return Err(map_err(
+                path,
+                "field `vocabulary`: missing (required from schema 2); rebuild the map with \
+                 `kiwi map`"
+                    .into(),
             ));
         }
         self.camera
@@ -333,16 +376,12 @@ impl VisualMap {
         Ok(map)
     }
 
-    /// Refuse to localize a lens this map was not built for: another lens name, camera model,
-    /// resolution or calibration.
+    /// Refuse to localize a lens this map was not built for: another lens name (front/rear/
+    /// main) or camera model, or another resolution (ORB descriptors are not scale invariant
+    /// enough across image sizes). Another calibration of the same model is accepted: the query
+    /// unprojects with its own calibration, which is how the rear map serves both wrists' units.
     pub fn check_query_lens(&self, lens: &str, camera: &dyn CameraModel) -> Result<()> {
         let query = MapCamera::from_camera(camera);
-        let same_params = query.params.len() == self.camera.params.len()
-            && query
-                .params
-                .iter()
-                .zip(&self.camera.params)
-                .all(|(a, b)| (a - b).abs() <= PARAM_TOLERANCE * a.abs().max(b.abs()).max(1.0));
         let problem = if lens != self.lens {
             Some(format!(
                 "lens `{lens}` but the map was built from lens `{}`",
@@ -361,8 +400,6 @@ impl VisualMap {
                 self.camera.resolution[0],
                 self.camera.resolution[1]
             ))
-        } else if !same_params {
-            Some("a lens with other calibration parameters than the map's".to_string())
         } else {
             None
         };

@@ -13,14 +13,21 @@
 //! - [`mapping`]: incremental mapping on bearing tracks (two-view init, P3P per frame,
 //!   keyframes, triangulation, local and global robust BA).
 //! - [`map`]: the versioned `.kmap` file and its export from a reconstruction.
+//! - [`place`]: place recognition over keyframes (bag of binary words learned from the map).
+//! - [`localize`]: every frame against a frozen map (KLT tracking with guided top-up,
+//!   relocalization by place recognition, strict acceptance).
+//! - [`episode`]: prepared-episode drivers behind `kiwi map` and `kiwi localize`.
 //!
 //! Determinism: every random choice comes from a seeded ChaCha8 generator and every reduction
 //! runs in a fixed order, so results are bit-identical across runs and thread counts.
 
 pub mod align;
 pub mod ba;
+pub mod episode;
 pub mod features;
 pub mod frontend;
 pub mod geometry;
+pub mod localize;
 pub mod map;
 pub mod mapping;
+pub mod place;

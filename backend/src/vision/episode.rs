@@ -1,0 +1,381 @@
+//! Prepared-episode drivers of `kiwi map` and `kiwi localize`: read a lens stream
+//! (`<episode>/<camera>/<lens>/frames.csv` and its images) with its calibration, build a map
+//! from it, localize it against a frozen map, and write `poses.csv`.
+//!
+//! The calibration comes from `--calibration` or, by default, from the session the episode
+//! belongs to (`<session>/episodes/<episode>`): the unit named in the camera's `meta.json` is
+//! looked up in `session.toml` and its `calibration.json` read. Images are decoded ahead in
+//! parallel batches (decoding is independent per frame, so results do not depend on the
+//! thread count); the vision itself runs sequentially in frame order.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use rayon::prelude::*;
+use serde::Serialize;
+
+use kiwi_core::artifact::UnitCalibration;
+use kiwi_core::camera::{Camera, CameraModel};
+use kiwi_core::layout::{EpisodeLayout, FrameRecord, Session, read_frames_csv};
+
+use crate::error::{BackendError, Result};
+use crate::vision::features::{
+    FOV_MASK_MARGIN_RAD, GrayImage, Mask, OrbExtractor, OrbOptions, fov_mask, intersect_masks,
+};
+use crate::vision::frontend::{FrameTracker, TrackerOptions};
+use crate::vision::localize::{
+    FrameLocalization, LocalizationStatus, Localizer, LocalizerOptions, pixel_angle,
+};
+use crate::vision::map::VisualMap;
+use crate::vision::mapping::{MapperOptions, reconstruct};
+
+/// Frames decoded ahead per parallel batch: enough to keep two cores busy, small in memory.
+const DECODE_BATCH: usize = 16;
+/// Angle of one pixel at the centre of the 960 px X5 lens the mapper's defaults are tuned for.
+const REFERENCE_PIXEL_ANGLE_RAD: f64 = 1.0 / 290.0;
+
+/// One lens's frames in a prepared episode, with the lens model to read them.
+pub struct LensStream {
+    /// The episode folder.
+    pub episode: PathBuf,
+    /// Camera folder name (`left`, `right`, `head`).
+    pub camera_name: String,
+    /// Lens name (`front`, `rear`, `main`).
+    pub lens: String,
+    /// The lens's calibrated model.
+    pub camera: Camera,
+    /// `frames.csv`.
+    pub frames: Vec<FrameRecord>,
+    /// Features allowed where non-zero: the lens's field of view, intersected with a static
+    /// mask if one was given.
+    pub mask: Mask,
+}
+
+fn input_err(path: &Path, message: String) -> BackendError {
+    BackendError::Input {
+        path: path.to_path_buf(),
+        message,
+    }
+}
+
+/// Find the unit calibration of a camera from the session the episode belongs to.
+fn session_calibration(layout: &EpisodeLayout, camera: &str) -> Result<PathBuf> {
+    let meta = layout.read_meta(camera)?;
+    let root = layout
+        .root()
+        .parent()
+        .and_then(Path::parent)
+        .ok_or_else(|| {
+            input_err(
+                layout.root(),
+                "expected the episode inside <session>/episodes/; pass --calibration".into(),
+            )
+        })?;
+    let toml = root.join("session.toml");
+    if !toml.is_file() {
+        return Err(input_err(
+            &toml,
+            "no session.toml two folders above the episode to find the lens calibration; pass \
+             --calibration FILE"
+                .into(),
+        ));
+    }
+    let session = Session::load(&toml)?;
+    let mut dirs: Vec<(&str, &Path)> = session
+        .wrists
+        .values()
+        .map(|w| (w.unit.as_str(), w.calibration.as_path()))
+        .collect();
+    if let Some(h) = &session.head {
+        dirs.push((h.unit.as_str(), h.calibration.as_path()));
+    }
+    dirs.iter()
+        .find(|(unit, _)| *unit == meta.unit_id)
+        .map(|(_, dir)| root.join(dir).join("calibration.json"))
+        .ok_or_else(|| {
+            input_err(
+                &toml,
+                format!(
+                    "unit `{}` of camera `{camera}` is not in the session; pass --calibration",
+                    meta.unit_id
+                ),
+            )
+        })
+}
+
+impl LensStream {
+    /// Open `<episode>/<camera>/<lens>`; `calibration` is a unit `calibration.json` (default:
+    /// found through the session), `static_mask` an optional image (non-zero = usable).
+    pub fn open(
+        episode: &Path,
+        camera_name: &str,
+        lens: &str,
+        calibration: Option<&Path>,
+        static_mask: Option<&Path>,
+    ) -> Result<Self> {
+        let layout = EpisodeLayout::new(episode);
+        let frames_csv = layout.frames_csv(camera_name, lens);
+        if !frames_csv.is_file() {
+            return Err(input_err(
+                &frames_csv,
+                format!(
+                    "missing: expected lens `{lens}` of camera `{camera_name}` in the episode \
+                     (check --camera and --lens)"
+                ),
+            ));
+        }
+        let frames = read_frames_csv(&frames_csv)?;
+        if frames.is_empty() {
+            return Err(input_err(&frames_csv, "expected frames, found none".into()));
+        }
+        let cal_path = match calibration {
+            Some(p) => p.to_path_buf(),
+            None => session_calibration(&layout, camera_name)?,
+        };
+        let cal = UnitCalibration::load(&cal_path)?;
+        let lens_cal = cal.lens(lens).ok_or_else(|| {
+            input_err(
+                &cal_path,
+                format!("field `lenses`: no lens named `{lens}`; check --lens"),
+            )
+        })?;
+        let camera = lens_cal.camera()?;
+        let mut mask = fov_mask(&camera, FOV_MASK_MARGIN_RAD);
+        if let Some(m) = static_mask {
+            let image = GrayImage::load(m)?;
+            mask = intersect_masks(&mask, &image).map_err(|e| input_err(m, e.to_string()))?;
+        }
+        Ok(Self {
+            episode: episode.to_path_buf(),
+            camera_name: camera_name.into(),
+            lens: lens.into(),
+            camera,
+            frames,
+            mask,
+        })
+    }
+
+    /// The episode's folder name.
+    pub fn episode_name(&self) -> String {
+        self.episode
+            .file_name()
+            .map_or_else(String::new, |n| n.to_string_lossy().into_owned())
+    }
+
+    fn frame_path(&self, i: usize) -> PathBuf {
+        EpisodeLayout::new(&self.episode).frame_path(&self.camera_name, &self.lens, &self.frames[i])
+    }
+
+    /// Decode frame `i`.
+    pub fn load(&self, i: usize) -> Result<GrayImage> {
+        GrayImage::load(&self.frame_path(i))
+    }
+
+    /// Decode frames `range` in parallel (order kept).
+    fn load_batch(&self, range: std::ops::Range<usize>) -> Result<Vec<GrayImage>> {
+        range
+            .into_par_iter()
+            .map(|i| self.load(i))
+            .collect::<Vec<_>>()
+            .into_iter()
+            .collect()
+    }
+
+    /// Call `f(index, image)` for every frame in order, decoding ahead in parallel batches.
+    pub fn for_each_frame(&self, mut f: impl FnMut(usize, GrayImage) -> Result<()>) -> Result<()> {
+        let n = self.frames.len();
+        let mut start = 0;
+        while start < n {
+            let end = (start + DECODE_BATCH).min(n);
+            for (k, img) in self.load_batch(start..end)?.into_iter().enumerate() {
+                f(start + k, img)?;
+            }
+            start = end;
+        }
+        Ok(())
+    }
+}
+
+/// Mapper thresholds scaled from the 960 px defaults to this lens's pixel size.
+pub fn mapper_options_for(camera: &dyn CameraModel) -> MapperOptions {
+    let s = (pixel_angle(camera) / REFERENCE_PIXEL_ANGLE_RAD).max(1.0);
+    let mut o = MapperOptions::default();
+    o.ransac.threshold_rad *= s;
+    o.triangulation.max_error_rad *= s;
+    o.ba.huber_rad *= s;
+    o.max_error_rad *= s;
+    o
+}
+
+/// What `kiwi map` did.
+#[derive(Debug, Clone, Serialize)]
+pub struct MapSummary {
+    /// Frames in the stream.
+    pub frames: usize,
+    /// Frames whose pose the mapper estimated.
+    pub frames_tracked: usize,
+    /// First frame the mapper could not track (mapping stopped there), if any.
+    pub lost_at: Option<u32>,
+    /// Keyframes in the map.
+    pub keyframes: usize,
+    /// Described landmarks in the map.
+    pub landmarks: usize,
+    /// Words in the place-recognition vocabulary.
+    pub vocabulary_words: usize,
+    /// Wall time (s).
+    pub seconds: f64,
+}
+
+/// Build a map from a lens stream: KLT/ORB tracks, incremental mapping with local and global
+/// bundle adjustment, ORB features at the keyframes, the place-recognition vocabulary.
+/// `progress(done, total)` is called after each frame is tracked.
+pub fn build_map(
+    stream: &LensStream,
+    progress: &mut dyn FnMut(usize, usize),
+) -> Result<(VisualMap, MapSummary)> {
+    let start = Instant::now();
+    let mut tracker = FrameTracker::new(TrackerOptions::default(), stream.mask.clone())?;
+    let n = stream.frames.len();
+    let mut frames = Vec::with_capacity(n);
+    stream.for_each_frame(|i, img| {
+        frames.push(tracker.process(i as u32, stream.frames[i].t, img, &stream.camera)?);
+        progress(i + 1, n);
+        Ok(())
+    })?;
+    let recon = reconstruct(&frames, &mapper_options_for(&stream.camera))?;
+    let mut orb = OrbExtractor::new(&OrbOptions::default())?;
+    let mut features = Vec::with_capacity(recon.keyframes.len());
+    for kf in &recon.keyframes {
+        let img = stream.load(kf.frame as usize)?;
+        features.push(orb.extract(&img, Some(&stream.mask), &stream.camera)?);
+    }
+    let mut map = VisualMap::from_reconstruction(
+        &recon,
+        &features,
+        &stream.camera_name,
+        &stream.lens,
+        &stream.episode_name(),
+        &stream.camera,
+    )?;
+    map.train_vocabulary();
+    let summary = MapSummary {
+        frames: n,
+        frames_tracked: recon.frame_poses.len(),
+        lost_at: recon.lost_at,
+        keyframes: map.keyframes.len(),
+        landmarks: map.landmarks.len(),
+        vocabulary_words: map
+            .vocabulary
+            .as_ref()
+            .map_or(0, crate::vision::place::Vocabulary::num_words),
+        seconds: start.elapsed().as_secs_f64(),
+    };
+    Ok((map, summary))
+}
+
+/// What `kiwi localize` did.
+#[derive(Debug, Clone, Serialize)]
+pub struct LocalizeSummary {
+    /// Frames in the stream.
+    pub frames: usize,
+    /// Frames with an accepted pose.
+    pub localized: usize,
+    /// `localized / frames`.
+    pub localized_fraction: f64,
+    /// Frames localized by tracking.
+    pub tracked: usize,
+    /// Frames localized by relocalization.
+    pub relocalized: usize,
+    /// Frames lost.
+    pub lost: usize,
+    /// Median inlier count of the localized frames.
+    pub median_inliers: usize,
+    /// Wall time (s), image decoding included.
+    pub seconds: f64,
+    /// Frames per second of wall time.
+    pub frames_per_second: f64,
+}
+
+/// Summarize per-frame results.
+pub fn summarize(results: &[FrameLocalization], seconds: f64) -> LocalizeSummary {
+    let count = |s: LocalizationStatus| results.iter().filter(|r| r.status == s).count();
+    let (tracked, relocalized, lost) = (
+        count(LocalizationStatus::Tracked),
+        count(LocalizationStatus::Relocalized),
+        count(LocalizationStatus::Lost),
+    );
+    let mut inliers: Vec<usize> = results
+        .iter()
+        .filter(|r| r.status != LocalizationStatus::Lost)
+        .map(|r| r.inliers)
+        .collect();
+    inliers.sort_unstable();
+    let localized = tracked + relocalized;
+    LocalizeSummary {
+        frames: results.len(),
+        localized,
+        localized_fraction: localized as f64 / results.len().max(1) as f64,
+        tracked,
+        relocalized,
+        lost,
+        median_inliers: inliers.get(inliers.len() / 2).copied().unwrap_or(0),
+        seconds,
+        frames_per_second: results.len() as f64 / seconds.max(1e-9),
+    }
+}
+
+/// Localize every frame of a stream against a frozen map (which must match the lens).
+pub fn localize_stream(
+    map: &VisualMap,
+    stream: &LensStream,
+    options: &LocalizerOptions,
+    progress: &mut dyn FnMut(usize, usize),
+) -> Result<(Vec<FrameLocalization>, LocalizeSummary)> {
+    let start = Instant::now();
+    let mut localizer = Localizer::new(
+        map,
+        &stream.lens,
+        stream.camera.clone(),
+        stream.mask.clone(),
+        *options,
+    )?;
+    let n = stream.frames.len();
+    let mut results = Vec::with_capacity(n);
+    stream.for_each_frame(|i, img| {
+        results.push(localizer.process(i as u32, stream.frames[i].t, &img)?);
+        progress(i + 1, n);
+        Ok(())
+    })?;
+    let summary = summarize(&results, start.elapsed().as_secs_f64());
+    Ok((results, summary))
+}
+
+/// Header of `poses.csv`.
+pub const POSES_CSV_HEADER: &str = "t,status,px,py,pz,qx,qy,qz,qw,inliers,reason";
+
+/// Write `poses.csv` atomically: one row per frame, `map_from_cam` of localized frames, empty
+/// pose fields for lost frames (with the reason).
+pub fn write_poses_csv(path: &Path, results: &[FrameLocalization]) -> Result<()> {
+    use std::fmt::Write as _;
+    let mut text = String::with_capacity(96 * (results.len() + 1));
+    text.push_str(POSES_CSV_HEADER);
+    text.push('\n');
+    for r in results {
+        let _ = write!(text, "{},{},", r.t, r.status.name());
+        match &r.map_from_cam {
+            Some(p) => {
+                let (t, q) = (p.translation.vector, p.rotation);
+                let _ = write!(
+                    text,
+                    "{},{},{},{},{},{},{}",
+                    t.x, t.y, t.z, q.i, q.j, q.k, q.w
+                );
+            }
+            None => text.push_str(",,,,,,"),
+        }
+        // Reasons never contain quotes; commas are replaced so the row stays 11 fields.
+        let _ = writeln!(text, ",{},{}", r.inliers, r.reason.replace(',', ";"));
+    }
+    kiwi_core::io::write_atomic(path, text.as_bytes())?;
+    Ok(())
+}

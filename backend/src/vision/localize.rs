@@ -1,0 +1,731 @@
+//! Localization of every frame of an episode against a frozen map (no map update).
+//!
+//! Per frame:
+//! 1. **Tracking** (the previous frame was localized): the previous frame's inlier pixels, each
+//!    tied to a map landmark, are followed with pyramidal KLT (pyramids built once per frame,
+//!    forward–backward checked) and the pose is estimated by P3P RANSAC + Huber refinement.
+//!    When fewer than a share of the target correspondences survive, the frame's ORB features
+//!    are extracted and **guided matching** adds landmarks of the keyframes nearest to the
+//!    estimated pose: each is projected with the pose and matched to the keypoints within a
+//!    few pixels by Hamming distance (ratio-checked), then the pose is re-estimated.
+//! 2. **Relocalization** (tracking failed or the previous frame was lost): ORB features are
+//!    quantized into the map's bag of words; the best-scoring keyframes are candidates; the
+//!    query is matched (mutual + ratio) to the landmarks of each candidate and its neighbours,
+//!    P3P RANSAC gives a pose, guided matching over the same landmarks densifies it, and the
+//!    candidate with the most inliers wins.
+//! 3. **Acceptance** (both paths): at least `min_inliers` inliers, an inlier ratio of at least
+//!    `min_inlier_ratio` among the correspondences, and inlier bearings spread over the sphere
+//!    (square root of the middle eigenvalue of their covariance at least `min_spread_rad`), so
+//!    that a pose resting on a small cluster or on a coincidental minority is reported lost
+//!    rather than output.
+//!
+//! Determinism: RANSAC seeds derive from the frame index, OpenCV's ORB and KLT are
+//! deterministic, candidates and matches are ordered; one episode runs sequentially, so the
+//! output is bit-identical whatever the thread count.
+
+use std::collections::BTreeSet;
+
+use nalgebra::{Matrix3, Point2, Point3, Vector3};
+
+use kiwi_core::camera::{Camera, CameraModel};
+use kiwi_core::geometry::Pose;
+
+use crate::error::{BackendError, Result};
+use crate::vision::features::{
+    Descriptor, FrameFeatures, GrayImage, KltOptions, KltPyramid, Mask, MatchOptions, OrbExtractor,
+    OrbOptions, match_descriptors, track_klt_pyramids,
+};
+use crate::vision::geometry::{RansacOptions, absolute_pose_ransac};
+use crate::vision::map::VisualMap;
+use crate::vision::place::KeyframeDatabase;
+
+/// Outcome of one frame.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub enum LocalizationStatus {
+    /// Localized by tracking from the previous frame.
+    Tracked,
+    /// Localized by place recognition.
+    Relocalized,
+    /// Not localized (no pose output).
+    Lost,
+}
+
+impl LocalizationStatus {
+    /// Name in `poses.csv`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Tracked => "tracked",
+            Self::Relocalized => "relocalized",
+            Self::Lost => "lost",
+        }
+    }
+}
+
+/// The result for one frame.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FrameLocalization {
+    /// Frame index in `frames.csv`.
+    pub frame: u32,
+    /// Frame time (s, camera clock).
+    pub t: f64,
+    /// Status.
+    pub status: LocalizationStatus,
+    /// `map_from_cam` when localized.
+    pub map_from_cam: Option<Pose>,
+    /// Inliers of the accepted (or best rejected) pose.
+    pub inliers: usize,
+    /// Why the frame is lost (empty when localized).
+    pub reason: String,
+}
+
+/// Localizer settings. Angular thresholds are given in pixels at the image centre and converted
+/// with the lens's own scale, so the same settings serve 320 px tests and 960 px episodes.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LocalizerOptions {
+    /// RANSAC inlier threshold (px at the image centre).
+    pub threshold_px: f64,
+    /// Fewest inliers of an accepted pose.
+    pub min_inliers: usize,
+    /// Fewest inliers of an accepted relocalization (no motion prior: stricter).
+    pub min_inliers_relocalization: usize,
+    /// Smallest inlier share among the correspondences of an accepted pose.
+    pub min_inlier_ratio: f64,
+    /// Smallest angular spread (rad) of the inlier bearings.
+    pub min_spread_rad: f64,
+    /// Correspondences tracked from frame to frame.
+    pub target_tracks: usize,
+    /// Below this share of the target, guided matching tops the correspondences up.
+    pub replenish_ratio: f64,
+    /// Search radius of guided matching (px).
+    pub guided_radius_px: f64,
+    /// Keyframes nearest to the pose whose landmarks guided matching projects.
+    pub guided_keyframes: usize,
+    /// Candidate keyframes tried by relocalization.
+    pub relocalization_candidates: usize,
+    /// Neighbouring keyframes (each side) whose landmarks join a candidate's.
+    pub relocalization_neighbours: usize,
+    /// KLT settings.
+    pub klt: KltOptions,
+    /// ORB settings (guided matching and relocalization).
+    pub orb: OrbOptions,
+    /// Descriptor matching of relocalization.
+    pub matching: MatchOptions,
+    /// Largest Hamming distance of a guided match.
+    pub guided_max_distance: u32,
+    /// RANSAC seed (mixed with the frame index).
+    pub seed: u64,
+}
+
+impl Default for LocalizerOptions {
+    fn default() -> Self {
+        Self {
+            // ~1.5 px: KLT and ORB keypoints are sub-pixel to 1 px accurate; blur widens it.
+            threshold_px: 1.5,
+            // P3P on fewer than ~30 spread inliers can fit a wrong pose to a coincidence.
+            min_inliers: 30,
+            min_inliers_relocalization: 40,
+            // A true pose explains most tracked correspondences; a wrong one a minority.
+            min_inlier_ratio: 0.5,
+            // ~6°: inliers on one small patch constrain the position poorly.
+            min_spread_rad: 0.1,
+            // ~200 well spread points are plenty for P3P; fewer keep KLT cheap.
+            target_tracks: 200,
+            replenish_ratio: 0.6,
+            // KLT drift plus pose error over one frame at 120 Hz stays within a few pixels.
+            guided_radius_px: 6.0,
+            guided_keyframes: 4,
+            relocalization_candidates: 3,
+            relocalization_neighbours: 2,
+            klt: KltOptions {
+                // 15 px is enough between consecutive frames and ~2× cheaper than 21.
+                window: 15,
+                ..KltOptions::default()
+            },
+            orb: OrbOptions::default(),
+            matching: MatchOptions::default(),
+            // ORB-SLAM's "low" threshold for a guided (position-constrained) match.
+            guided_max_distance: 50,
+            seed: 0x4C4F_4341,
+        }
+    }
+}
+
+/// Angle (rad) subtended by one pixel at the image centre of a lens.
+pub fn pixel_angle(camera: &dyn CameraModel) -> f64 {
+    let (w, h) = camera.resolution();
+    let c = Point2::new(f64::from(w) / 2.0, f64::from(h) / 2.0);
+    match (
+        camera.unproject(&c),
+        camera.unproject(&Point2::new(c.x + 1.0, c.y)),
+    ) {
+        (Some(a), Some(b)) => a.dot(&b).clamp(-1.0, 1.0).acos(),
+        // A lens that does not unproject its centre: fall back to the 190° circle over the width.
+        _ => 190f64.to_radians() / f64::from(w.max(1)),
+    }
+}
+
+/// Square root of the middle eigenvalue of the bearings' covariance (rad): small when the
+/// bearings lie in one patch or along one arc.
+pub fn angular_spread(bearings: &[Vector3<f64>]) -> f64 {
+    if bearings.len() < 3 {
+        return 0.0;
+    }
+    let n = bearings.len() as f64;
+    let mean = bearings.iter().sum::<Vector3<f64>>() / n;
+    let mut c = Matrix3::zeros();
+    for b in bearings {
+        let d = b - mean;
+        c += d * d.transpose();
+    }
+    c /= n;
+    let mut e: Vec<f64> = c.symmetric_eigenvalues().iter().copied().collect();
+    e.sort_by(f64::total_cmp);
+    e[1].max(0.0).sqrt()
+}
+
+/// A 2-D correspondence: landmark, pixel and bearing in the query frame.
+#[derive(Debug, Clone, Copy)]
+struct Correspondence {
+    landmark: u32,
+    pixel: Point2<f64>,
+    bearing: Vector3<f64>,
+}
+
+/// A pose estimate with its support.
+struct Estimate {
+    cam_from_map: Pose,
+    inliers: Vec<Correspondence>,
+    candidates: usize,
+}
+
+/// What is carried from one localized frame to the next.
+struct TrackState {
+    pyramid: KltPyramid,
+    points: Vec<(u32, Point2<f64>)>,
+    cam_from_map: Pose,
+}
+
+/// Localizes the frames of one lens stream, in order, against a frozen map.
+pub struct Localizer {
+    camera: Camera,
+    mask: Mask,
+    options: LocalizerOptions,
+    threshold_rad: f64,
+    orb: OrbExtractor,
+    database: KeyframeDatabase,
+    vocabulary: crate::vision::place::Vocabulary,
+    positions: Vec<Vector3<f64>>,
+    descriptors: Vec<Descriptor>,
+    keyframe_landmarks: Vec<Vec<u32>>,
+    keyframe_centres: Vec<Vector3<f64>>,
+    state: Option<TrackState>,
+}
+
+fn vision_err(message: String) -> BackendError {
+    BackendError::Vision {
+        context: "localization".into(),
+        message,
+    }
+}
+
+impl Localizer {
+    /// A localizer for `camera` (the query lens's own calibration, checked against the map) with
+    /// a static mask (non-zero pixels may hold features).
+    pub fn new(
+        map: &VisualMap,
+        lens: &str,
+        camera: Camera,
+        mask: Mask,
+        options: LocalizerOptions,
+    ) -> Result<Self> {
+        map.check_query_lens(lens, &camera)?;
+        if map.landmarks.is_empty() || map.keyframes.is_empty() {
+            return Err(vision_err(
+                "the map has no keyframes or landmarks; rebuild it with `kiwi map` on an episode \
+                 with texture and motion"
+                    .into(),
+            ));
+        }
+        let mut map = map.clone();
+        let database = map.keyframe_database();
+        let vocabulary = map
+            .vocabulary
+            .clone()
+            .ok_or_else(|| vision_err("the map has no place-recognition vocabulary".into()))?;
+        let keyframe_landmarks = map
+            .keyframes
+            .iter()
+            .map(|k| {
+                let set: BTreeSet<u32> = k.features.iter().filter_map(|f| f.landmark).collect();
+                set.into_iter().collect()
+            })
+            .collect();
+        let keyframe_centres = map
+            .keyframes
+            .iter()
+            .map(|k| {
+                k.cam_from_map
+                    .to_pose()
+                    .map_or_else(Vector3::zeros, |p| p.inverse().translation.vector)
+            })
+            .collect();
+        let threshold_rad = options.threshold_px * pixel_angle(&camera);
+        Ok(Self {
+            orb: OrbExtractor::new(&options.orb)?,
+            camera,
+            mask,
+            options,
+            threshold_rad,
+            database,
+            vocabulary,
+            positions: map
+                .landmarks
+                .iter()
+                .map(|l| Vector3::from(l.position))
+                .collect(),
+            descriptors: map.landmarks.iter().map(|l| l.descriptor).collect(),
+            keyframe_landmarks,
+            keyframe_centres,
+            state: None,
+        })
+    }
+
+    /// Forget the motion prior (the next frame relocalizes).
+    pub fn reset(&mut self) {
+        self.state = None;
+    }
+
+    fn ransac(&self, frame: u32, salt: u64, min_inliers: usize) -> RansacOptions {
+        RansacOptions {
+            threshold_rad: self.threshold_rad,
+            min_inliers,
+            seed: self.options.seed
+                ^ u64::from(frame).wrapping_mul(0x9E37_79B9_7F4A_7C15)
+                ^ salt.wrapping_mul(0xD1B5_4A32_D192_ED03),
+            ..RansacOptions::default()
+        }
+    }
+
+    /// Robust pose from correspondences; the inliers are returned in input order.
+    fn estimate(
+        &self,
+        corr: &[Correspondence],
+        options: &RansacOptions,
+    ) -> std::result::Result<Estimate, String> {
+        if corr.len() < options.min_inliers {
+            return Err(format!(
+                "{} correspondences, fewer than the {} inliers required",
+                corr.len(),
+                options.min_inliers
+            ));
+        }
+        let b: Vec<Vector3<f64>> = corr.iter().map(|c| c.bearing).collect();
+        let p: Vec<Vector3<f64>> = corr
+            .iter()
+            .map(|c| self.positions[c.landmark as usize])
+            .collect();
+        let pose = absolute_pose_ransac(&b, &p, options)
+            .ok_or_else(|| format!("no pose with {} inliers", options.min_inliers))?;
+        Ok(Estimate {
+            cam_from_map: pose.cam_from_world,
+            inliers: corr
+                .iter()
+                .zip(&pose.inliers)
+                .filter(|(_, ok)| **ok)
+                .map(|(c, _)| *c)
+                .collect(),
+            candidates: corr.len(),
+        })
+    }
+
+    /// Strict acceptance: inlier count, ratio and spread.
+    fn accept(&self, e: &Estimate, min_inliers: usize) -> std::result::Result<(), String> {
+        let n = e.inliers.len();
+        if n < min_inliers {
+            return Err(format!("{n} inliers < {min_inliers}"));
+        }
+        let ratio = n as f64 / e.candidates.max(1) as f64;
+        if ratio < self.options.min_inlier_ratio {
+            return Err(format!(
+                "inlier ratio {ratio:.2} < {:.2}",
+                self.options.min_inlier_ratio
+            ));
+        }
+        let bearings: Vec<Vector3<f64>> = e.inliers.iter().map(|c| c.bearing).collect();
+        let spread = angular_spread(&bearings);
+        if spread < self.options.min_spread_rad {
+            return Err(format!(
+                "inliers clustered: spread {spread:.3} rad < {:.3}",
+                self.options.min_spread_rad
+            ));
+        }
+        Ok(())
+    }
+
+    /// Landmarks seen by the `count` keyframes whose centres are nearest to the pose's centre.
+    fn nearby_landmarks(&self, cam_from_map: &Pose, count: usize) -> Vec<u32> {
+        let c = cam_from_map.inverse().translation.vector;
+        let mut order: Vec<(f64, usize)> = self
+            .keyframe_centres
+            .iter()
+            .enumerate()
+            .map(|(k, x)| ((x - c).norm_squared(), k))
+            .collect();
+        order.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+        let set: BTreeSet<u32> = order
+            .iter()
+            .take(count)
+            .flat_map(|(_, k)| self.keyframe_landmarks[*k].iter().copied())
+            .collect();
+        set.into_iter().collect()
+    }
+
+    /// Project `landmarks` with the pose and match each to the best keypoint within the guided
+    /// radius (Hamming ≤ the guided limit, ratio-checked among the keypoints in reach); each
+    /// keypoint serves one landmark (the closest in descriptor distance).
+    fn guided_matches(
+        &self,
+        cam_from_map: &Pose,
+        landmarks: &[u32],
+        features: &FrameFeatures,
+        grid: &KeypointGrid,
+    ) -> Vec<Correspondence> {
+        let max_off_axis = 0.5 * self.camera.valid_fov();
+        let cos_max = max_off_axis.cos();
+        let r = self.options.guided_radius_px;
+        // (keypoint, distance, landmark) proposals.
+        let mut proposals: Vec<(usize, u32, u32)> = Vec::new();
+        let mut near = Vec::new();
+        for &l in landmarks {
+            let pc = (cam_from_map * Point3::from(self.positions[l as usize])).coords;
+            let n = pc.norm();
+            if n <= 0.0 || pc.z / n < cos_max {
+                continue;
+            }
+            let Some(px) = self.camera.project(&pc) else {
+                continue;
+            };
+            grid.within(&px, r, &features.keypoints, &mut near);
+            let d = &self.descriptors[l as usize];
+            let (mut best, mut second) = ((u32::MAX, usize::MAX), u32::MAX);
+            for &k in &near {
+                let dist = d.distance(&features.descriptors[k]);
+                if dist < best.0 {
+                    second = best.0;
+                    best = (dist, k);
+                } else if dist < second {
+                    second = dist;
+                }
+            }
+            if best.1 == usize::MAX || best.0 > self.options.guided_max_distance {
+                continue;
+            }
+            if second != u32::MAX && (best.0 as f32) >= self.options.matching.ratio * second as f32
+            {
+                continue;
+            }
+            proposals.push((best.1, best.0, l));
+        }
+        proposals.sort_unstable();
+        let mut out = Vec::new();
+        let mut last = usize::MAX;
+        for (k, _, l) in proposals {
+            if k == last {
+                continue;
+            }
+            last = k;
+            let kp = &features.keypoints[k];
+            out.push(Correspondence {
+                landmark: l,
+                pixel: kp.pixel,
+                bearing: kp.bearing,
+            });
+        }
+        out
+    }
+
+    /// Localize the next frame of the stream.
+    pub fn process(&mut self, frame: u32, t: f64, image: &GrayImage) -> Result<FrameLocalization> {
+        let (w, h) = self.camera.resolution();
+        if (image.width, image.height) != (w, h) {
+            return Err(vision_err(format!(
+                "frame {frame} is {}x{} but the lens is {w}x{h}; use the calibrated resolution",
+                image.width, image.height
+            )));
+        }
+        let pyramid = KltPyramid::new(image, &self.options.klt)?;
+        let mut features: Option<FrameFeatures> = None;
+        let mut reason = String::new();
+        let mut best_rejected = 0;
+        if let Some(state) = self.state.take() {
+            match self.track(frame, image, &pyramid, &state, &mut features)? {
+                Ok(e) => {
+                    return Ok(self.finish(frame, t, &e, pyramid, LocalizationStatus::Tracked));
+                }
+                Err((why, n)) => {
+                    reason = format!("tracking: {why}");
+                    best_rejected = n;
+                }
+            }
+        }
+        let feats = match features.take() {
+            Some(f) => f,
+            None => self.orb.extract(image, Some(&self.mask), &self.camera)?,
+        };
+        match self.relocalize(frame, &feats) {
+            Ok(e) => Ok(self.finish(frame, t, &e, pyramid, LocalizationStatus::Relocalized)),
+            Err((why, n)) => {
+                let reason = if reason.is_empty() {
+                    format!("relocalization: {why}")
+                } else {
+                    format!("{reason}; relocalization: {why}")
+                };
+                Ok(FrameLocalization {
+                    frame,
+                    t,
+                    status: LocalizationStatus::Lost,
+                    map_from_cam: None,
+                    inliers: n.max(best_rejected),
+                    reason,
+                })
+            }
+        }
+    }
+
+    fn finish(
+        &mut self,
+        frame: u32,
+        t: f64,
+        e: &Estimate,
+        pyramid: KltPyramid,
+        status: LocalizationStatus,
+    ) -> FrameLocalization {
+        let inliers = e.inliers.len();
+        let points = e
+            .inliers
+            .iter()
+            .take(self.options.target_tracks)
+            .map(|c| (c.landmark, c.pixel))
+            .collect();
+        self.state = Some(TrackState {
+            pyramid,
+            points,
+            cam_from_map: e.cam_from_map,
+        });
+        FrameLocalization {
+            frame,
+            t,
+            status,
+            map_from_cam: Some(e.cam_from_map.inverse()),
+            inliers,
+            reason: String::new(),
+        }
+    }
+
+    /// Tracking with the motion prior; `Err((reason, inliers))` when rejected.
+    #[allow(clippy::type_complexity)]
+    fn track(
+        &mut self,
+        frame: u32,
+        image: &GrayImage,
+        pyramid: &KltPyramid,
+        state: &TrackState,
+        features: &mut Option<FrameFeatures>,
+    ) -> Result<std::result::Result<Estimate, (String, usize)>> {
+        let pixels: Vec<Point2<f64>> = state.points.iter().map(|p| p.1).collect();
+        let tracks = track_klt_pyramids(
+            &state.pyramid,
+            pyramid,
+            &pixels,
+            Some(&self.mask),
+            &self.camera,
+            &self.options.klt,
+        )?;
+        let corr: Vec<Correspondence> = state
+            .points
+            .iter()
+            .zip(tracks)
+            .filter_map(|((l, _), tr)| {
+                tr.map(|tr| Correspondence {
+                    landmark: *l,
+                    pixel: tr.pixel,
+                    bearing: tr.bearing,
+                })
+            })
+            .collect();
+        let ransac = self.ransac(frame, 1, self.options.min_inliers);
+        let first = self.estimate(&corr, &ransac);
+        let enough = (self.options.replenish_ratio * self.options.target_tracks as f64).ceil();
+        let needs_more = match &first {
+            Ok(e) => {
+                (e.inliers.len() as f64) < enough || self.accept(e, ransac.min_inliers).is_err()
+            }
+            Err(_) => true,
+        };
+        if !needs_more && let Ok(e) = first {
+            return Ok(Ok(e));
+        }
+        // Guided top-up around the estimated pose (or the previous one).
+        let pose = match &first {
+            Ok(e) => e.cam_from_map,
+            Err(_) => state.cam_from_map,
+        };
+        let feats = self.orb.extract(image, Some(&self.mask), &self.camera)?;
+        let grid = KeypointGrid::new(&feats.keypoints, self.options.guided_radius_px);
+        let tracked: BTreeSet<u32> = corr.iter().map(|c| c.landmark).collect();
+        let candidates: Vec<u32> = self
+            .nearby_landmarks(&pose, self.options.guided_keyframes)
+            .into_iter()
+            .filter(|l| !tracked.contains(l))
+            .collect();
+        let mut all = corr;
+        all.extend(self.guided_matches(&pose, &candidates, &feats, &grid));
+        *features = Some(feats);
+        let e = match self.estimate(&all, &self.ransac(frame, 2, ransac.min_inliers)) {
+            Ok(e) => e,
+            Err(why) => return Ok(Err((why, 0))),
+        };
+        match self.accept(&e, ransac.min_inliers) {
+            Ok(()) => Ok(Ok(e)),
+            Err(why) => Ok(Err((why, e.inliers.len()))),
+        }
+    }
+
+    /// Global relocalization by place recognition; `Err((reason, inliers))` when rejected.
+    fn relocalize(
+        &self,
+        frame: u32,
+        feats: &FrameFeatures,
+    ) -> std::result::Result<Estimate, (String, usize)> {
+        if feats.keypoints.len() < self.options.min_inliers_relocalization {
+            return Err((
+                format!("{} ORB features in the frame", feats.keypoints.len()),
+                0,
+            ));
+        }
+        let bow = self.vocabulary.bow(&feats.descriptors);
+        let candidates = self
+            .database
+            .query(&bow, self.options.relocalization_candidates);
+        if candidates.is_empty() {
+            return Err(("no keyframe shares a visual word".into(), 0));
+        }
+        let grid = KeypointGrid::new(&feats.keypoints, self.options.guided_radius_px);
+        let min_inliers = self.options.min_inliers_relocalization;
+        let mut best: Option<Estimate> = None;
+        let mut last_reason = String::new();
+        let mut best_rejected = 0;
+        let n_kf = self.keyframe_landmarks.len();
+        for (rank, &(_, k)) in candidates.iter().enumerate() {
+            let lo = k.saturating_sub(self.options.relocalization_neighbours);
+            let hi = (k + self.options.relocalization_neighbours).min(n_kf - 1);
+            let set: BTreeSet<u32> = (lo..=hi)
+                .flat_map(|j| self.keyframe_landmarks[j].iter().copied())
+                .collect();
+            let local: Vec<u32> = set.into_iter().collect();
+            let train: Vec<Descriptor> = local
+                .iter()
+                .map(|&l| self.descriptors[l as usize])
+                .collect();
+            let matches = match_descriptors(&feats.descriptors, &train, &self.options.matching);
+            let corr: Vec<Correspondence> = matches
+                .iter()
+                .map(|m| {
+                    let kp = &feats.keypoints[m.query];
+                    Correspondence {
+                        landmark: local[m.train],
+                        pixel: kp.pixel,
+                        bearing: kp.bearing,
+                    }
+                })
+                .collect();
+            let salt = 16 + 2 * rank as u64;
+            let first = match self.estimate(&corr, &self.ransac(frame, salt, min_inliers)) {
+                Ok(e) => e,
+                Err(why) => {
+                    last_reason = format!("keyframe {k}: {why}");
+                    continue;
+                }
+            };
+            // Densify with guided matching over the candidate's landmarks.
+            let guided = self.guided_matches(&first.cam_from_map, &local, feats, &grid);
+            let e = match self.estimate(&guided, &self.ransac(frame, salt + 1, min_inliers)) {
+                Ok(e) if e.inliers.len() >= first.inliers.len() => e,
+                _ => first,
+            };
+            match self.accept(&e, min_inliers) {
+                Ok(()) => {
+                    if best
+                        .as_ref()
+                        .is_none_or(|b| e.inliers.len() > b.inliers.len())
+                    {
+                        best = Some(e);
+                    }
+                }
+                Err(why) => {
+                    best_rejected = best_rejected.max(e.inliers.len());
+                    last_reason = format!("keyframe {k}: {why}");
+                }
+            }
+        }
+        best.ok_or((last_reason, best_rejected))
+    }
+}
+
+/// Keypoints bucketed on a grid of cells one search radius wide.
+struct KeypointGrid {
+    cell: f64,
+    cols: usize,
+    rows: usize,
+    cells: Vec<Vec<usize>>,
+}
+
+impl KeypointGrid {
+    fn new(keypoints: &[crate::vision::features::Keypoint], radius: f64) -> Self {
+        let cell = radius.max(1.0);
+        let max_x = keypoints.iter().map(|k| k.pixel.x).fold(0.0, f64::max);
+        let max_y = keypoints.iter().map(|k| k.pixel.y).fold(0.0, f64::max);
+        let cols = (max_x / cell).floor() as usize + 1;
+        let rows = (max_y / cell).floor() as usize + 1;
+        let mut cells = vec![Vec::new(); cols * rows];
+        for (i, k) in keypoints.iter().enumerate() {
+            let (cx, cy) = (
+                (k.pixel.x.max(0.0) / cell) as usize,
+                (k.pixel.y.max(0.0) / cell) as usize,
+            );
+            cells[cy.min(rows - 1) * cols + cx.min(cols - 1)].push(i);
+        }
+        Self {
+            cell,
+            cols,
+            rows,
+            cells,
+        }
+    }
+
+    /// Keypoints within `r` of `p` (in index order).
+    fn within(
+        &self,
+        p: &Point2<f64>,
+        r: f64,
+        keypoints: &[crate::vision::features::Keypoint],
+        out: &mut Vec<usize>,
+    ) {
+        out.clear();
+        let lo = |v: f64| ((v - r).max(0.0) / self.cell).floor() as usize;
+        let hi = |v: f64, n: usize| (((v + r).max(0.0) / self.cell).floor() as usize).min(n - 1);
+        if p.x + r < 0.0 || p.y + r < 0.0 {
+            return;
+        }
+        for cy in lo(p.y)..=hi(p.y, self.rows) {
+            for cx in lo(p.x)..=hi(p.x, self.cols) {
+                for &i in &self.cells[cy * self.cols + cx] {
+                    if (keypoints[i].pixel - p).norm_squared() <= r * r {
+                        out.push(i);
+                    }
+                }
+            }
+        }
+        out.sort_unstable();
+    }
+}
