@@ -14,6 +14,9 @@ pub enum CalibError {
         /// What is wrong and the fix.
         message: String,
     },
+    /// A servo-bench failure (protocol, device, bench files).
+    #[error(transparent)]
+    Bench(#[from] crate::bench::BenchError),
     /// A bug in the calibration tools.
     #[error("internal error: {0}")]
     Internal(String),

@@ -7,6 +7,7 @@
 
 pub mod allan;
 pub mod av_delay;
+pub mod bench;
 pub mod detect;
 pub mod error;
 pub mod export;

@@ -141,6 +141,9 @@ enum Command {
     Intrinsics(kiwi_calib::lens_cli::IntrinsicsArgs),
     /// Time detection + intrinsics fit of a folder of images (benchmark).
     BenchIntrinsics(kiwi_calib::lens_cli::BenchIntrinsicsArgs),
+    /// Jaw bench: record a Feetech servo encoder, run a simulated servo, compare with vision.
+    #[command(subcommand)]
+    Bench(kiwi_calib::bench::cli::BenchCommand),
 }
 
 fn main() -> Result<()> {
@@ -431,6 +434,9 @@ fn main() -> Result<()> {
         }
         Command::BenchIntrinsics(args) => {
             println!("{}", kiwi_calib::lens_cli::run_bench(&args)?);
+        }
+        Command::Bench(cmd) => {
+            println!("{}", kiwi_calib::bench::cli::run(&cmd)?);
         }
     }
     Ok(())
