@@ -8,6 +8,7 @@
 pub mod allan;
 pub mod av_delay;
 pub mod bench;
+pub mod cam_imu;
 pub mod detect;
 pub mod error;
 pub mod export;

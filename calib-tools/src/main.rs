@@ -141,6 +141,9 @@ enum Command {
     Intrinsics(kiwi_calib::lens_cli::IntrinsicsArgs),
     /// Time detection + intrinsics fit of a folder of images (benchmark).
     BenchIntrinsics(kiwi_calib::lens_cli::BenchIntrinsicsArgs),
+    /// Camera–IMU extrinsic and time shift of every lens from an excitation recording in front
+    /// of aprilgrid boards (joint continuous-time batch estimate; docs/cam-imu.md).
+    CamImu(kiwi_calib::cam_imu::report::CamImuArgs),
     /// Jaw bench: record a Feetech servo encoder, run a simulated servo, compare with vision.
     #[command(subcommand)]
     Bench(kiwi_calib::bench::cli::BenchCommand),
@@ -434,6 +437,35 @@ fn main() -> Result<()> {
         }
         Command::BenchIntrinsics(args) => {
             println!("{}", kiwi_calib::lens_cli::run_bench(&args)?);
+        }
+        Command::CamImu(args) => {
+            let (result, files) = kiwi_calib::cam_imu::report::run(&args)?;
+            if args.json {
+                println!(
+                    "{}",
+                    serde_json::to_string_pretty(&kiwi_calib::cam_imu::report::summary_json(
+                        &result
+                    ))?
+                );
+            } else {
+                for l in &result.lenses {
+                    println!(
+                        "{}: rotation {:?} deg, translation {:?} m, time shift {:.3} ms \
+                         (±{:.3}), RMS {:.3} px",
+                        l.name,
+                        l.rotation_deg,
+                        l.translation_m,
+                        l.time_shift_s * 1e3,
+                        l.time_shift_std_s * 1e3,
+                        l.rms_px
+                    );
+                }
+                println!(
+                    "wrote {} and the report in {}",
+                    files.calibration.display(),
+                    args.out.display()
+                );
+            }
         }
         Command::Bench(cmd) => {
             println!("{}", kiwi_calib::bench::cli::run(&cmd)?);

@@ -9,7 +9,7 @@
 //! Sphere fit starts from the Kannala–Brandt one. [`report`] writes the artifact part and the
 //! report folder.
 
-mod init;
+pub(crate) mod init;
 pub mod report;
 mod solve;
 

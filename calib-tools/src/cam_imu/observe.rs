@@ -1,0 +1,505 @@
+//! From images to what the batch estimator needs: aprilgrid corners per frame (parallel), each
+//! frame's board pose from bearing vectors with a robust pixel refinement, camera angular rates
+//! from consecutive poses, the coarse time shift by cross-correlating angular-rate magnitudes
+//! with the gyro, and the camera-from-IMU rotation by aligning the angular rates.
+
+use std::path::Path;
+
+use indicatif::{ProgressBar, ProgressStyle};
+use nalgebra::{Matrix6, Point2, Vector2, Vector3, Vector6};
+use rayon::prelude::*;
+
+use kiwi_core::camera::{Camera, CameraModel};
+use kiwi_core::geometry::{Pose, hat, se3_exp, so3_log};
+use kiwi_core::imu::ImuSample;
+use kiwi_core::layout::FrameRecord;
+
+use crate::detect::{Detector, load_gray};
+use crate::error::{CalibError, Result};
+use crate::target::AprilGridTarget;
+
+/// Fewest corners for a frame to count: below this a board pose is poorly determined.
+pub const MIN_CORNERS_PER_FRAME: usize = 12;
+/// Corners farther than this many robust standard deviations from the pose are dropped.
+const CORNER_OUTLIER_SIGMAS: f64 = 4.0;
+/// Floor (px) of the corner outlier threshold, so a perfect frame does not lose good corners.
+const CORNER_OUTLIER_FLOOR_PX: f64 = 1.0;
+/// A frame whose RMS reprojection error after refinement exceeds this (px) is rejected
+/// (misdetection, heavy blur).
+pub const MAX_FRAME_RMS_PX: f64 = 2.5;
+/// Gauss–Newton iterations of a frame's pose refinement.
+const POSE_ITERATIONS: usize = 8;
+/// Two frames further apart than this many frame periods give no angular rate (a gap).
+const MAX_RATE_GAP_PERIODS: f64 = 2.5;
+/// Step (s) of the coarse time-shift search grid.
+const SEARCH_STEP_S: f64 = 0.0005;
+/// A time-shift correlation peak below this normalised correlation is not trusted.
+pub const MIN_CORRELATION: f64 = 0.7;
+/// RMS camera rotation rate (rad/s) below which the rotation is too weak to calibrate.
+pub const MIN_ROTATION_RATE: f64 = 0.3;
+/// The weakest rotation axis must carry at least this share of the strongest one's energy.
+pub const MIN_AXIS_SHARE: f64 = 0.02;
+
+/// One detected corner.
+#[derive(Debug, Clone, Copy)]
+pub struct CornerObs {
+    /// Board point (m, board frame).
+    pub board: Vector3<f64>,
+    /// Detected pixel.
+    pub pixel: Vector2<f64>,
+    /// Rolling-shutter delay of its row after the frame stamp (s).
+    pub row_delay_s: f64,
+}
+
+/// One frame with enough corners.
+#[derive(Debug, Clone)]
+pub struct FrameObs {
+    /// Index in frames.csv.
+    pub index: usize,
+    /// Frame stamp (s, camera clock).
+    pub t: f64,
+    /// Mean rolling-shutter delay of its corners (s).
+    pub row_delay_s: f64,
+    /// Inlier corners.
+    pub corners: Vec<CornerObs>,
+    /// Corners dropped as outliers.
+    pub outliers: usize,
+    /// `cam_from_board` from this frame alone.
+    pub cam_from_board: Pose,
+    /// RMS reprojection error of that pose (px).
+    pub rms_px: f64,
+}
+
+/// What detection found for one lens.
+#[derive(Debug, Clone)]
+pub struct LensObservations {
+    /// Lens name.
+    pub name: String,
+    /// Its camera model.
+    pub camera: Camera,
+    /// Frames in frames.csv.
+    pub frames_total: usize,
+    /// Frames looked at (after `--frame-step`).
+    pub frames_used: usize,
+    /// Frames rejected (too few corners or too large an error).
+    pub frames_rejected: usize,
+    /// Accepted frames, in time order.
+    pub frames: Vec<FrameObs>,
+}
+
+/// Input of one lens for detection.
+pub struct LensInput<'a> {
+    /// Lens name.
+    pub name: &'a str,
+    /// Lens folder (frames.csv's files are relative to it).
+    pub dir: &'a Path,
+    /// Frames.
+    pub frames: &'a [FrameRecord],
+    /// Camera model.
+    pub camera: &'a Camera,
+}
+
+/// Detect the board in every `step`-th frame of each lens (in parallel) and estimate each
+/// frame's pose; `readout_s` is the rolling-shutter readout of a full frame.
+pub fn observe(
+    lenses: &[LensInput<'_>],
+    target: &AprilGridTarget,
+    step: usize,
+    readout_s: f64,
+    progress: bool,
+) -> Result<Vec<LensObservations>> {
+    let detector = Detector::new(*target);
+    let jobs: Vec<(usize, usize)> = lenses
+        .iter()
+        .enumerate()
+        .flat_map(|(l, lens)| {
+            (0..lens.frames.len())
+                .step_by(step.max(1))
+                .map(move |k| (l, k))
+        })
+        .collect();
+    let bar = if progress {
+        let b = ProgressBar::new(jobs.len() as u64);
+        if let Ok(style) =
+            ProgressStyle::with_template("detecting {bar:40} {pos}/{len} frames ({eta} left)")
+        {
+            b.set_style(style);
+        }
+        b
+    } else {
+        ProgressBar::hidden()
+    };
+    let found: Vec<Result<Option<FrameObs>>> = jobs
+        .par_iter()
+        .map(|&(l, k)| {
+            let lens = &lenses[l];
+            let record = &lens.frames[k];
+            let gray = load_gray(&lens.dir.join(&record.file))?;
+            let (_, height) = lens.camera.resolution();
+            if (gray.width(), gray.height()) != lens.camera.resolution() {
+                return Err(CalibError::Input {
+                    path: lens.dir.join(&record.file),
+                    message: format!(
+                        "image is {}x{} but the {} lens's intrinsics are for {}x{}; pass the \
+                         calibration.json of this unit and recording resolution",
+                        gray.width(),
+                        gray.height(),
+                        lens.name,
+                        lens.camera.resolution().0,
+                        height
+                    ),
+                });
+            }
+            let detection = detector.detect(&gray)?;
+            bar.inc(1);
+            let corners: Vec<CornerObs> = detection
+                .corners
+                .iter()
+                .map(|c| CornerObs {
+                    board: c.board_point(),
+                    pixel: Vector2::new(c.pixel[0], c.pixel[1]),
+                    row_delay_s: readout_s * (c.pixel[1] + 0.5) / f64::from(height),
+                })
+                .collect();
+            Ok(frame_pose(lens.camera, k, record.t, corners))
+        })
+        .collect();
+    bar.finish_and_clear();
+    let mut out: Vec<LensObservations> = lenses
+        .iter()
+        .map(|lens| LensObservations {
+            name: lens.name.to_owned(),
+            camera: lens.camera.clone(),
+            frames_total: lens.frames.len(),
+            frames_used: 0,
+            frames_rejected: 0,
+            frames: Vec::new(),
+        })
+        .collect();
+    for (&(l, _), r) in jobs.iter().zip(found) {
+        out[l].frames_used += 1;
+        match r? {
+            Some(f) => out[l].frames.push(f),
+            None => out[l].frames_rejected += 1,
+        }
+    }
+    Ok(out)
+}
+
+/// A frame's pose from its corners: bearings → planar homography pose → robust pixel
+/// refinement with outlier removal. `None` when the frame cannot be trusted.
+pub fn frame_pose(
+    camera: &Camera,
+    index: usize,
+    t: f64,
+    mut corners: Vec<CornerObs>,
+) -> Option<FrameObs> {
+    if corners.len() < MIN_CORNERS_PER_FRAME {
+        return None;
+    }
+    let (bearings, board): (Vec<Vector3<f64>>, Vec<Vector3<f64>>) = corners
+        .iter()
+        .filter_map(|c| {
+            camera
+                .unproject(&Point2::new(c.pixel.x, c.pixel.y))
+                .map(|b| (b.into_inner(), c.board))
+        })
+        .unzip();
+    let (mut pose, _) = crate::intrinsics::init::pose_from_bearings(&bearings, &board)?;
+    let total = corners.len();
+    for _ in 0..2 {
+        pose = refine_pose(camera, &pose, &corners)?;
+        let errors: Vec<f64> = corners
+            .iter()
+            .map(|c| pixel_error(camera, &pose, c).unwrap_or(f64::INFINITY))
+            .collect();
+        let mut sorted: Vec<f64> = errors.iter().copied().filter(|e| e.is_finite()).collect();
+        if sorted.len() < MIN_CORNERS_PER_FRAME {
+            return None;
+        }
+        sorted.sort_by(f64::total_cmp);
+        let sigma = 1.4826 * sorted[sorted.len() / 2];
+        let limit = (CORNER_OUTLIER_SIGMAS * sigma).max(CORNER_OUTLIER_FLOOR_PX);
+        let kept: Vec<CornerObs> = corners
+            .iter()
+            .zip(&errors)
+            .filter(|(_, e)| **e <= limit)
+            .map(|(c, _)| *c)
+            .collect();
+        if kept.len() == corners.len() {
+            break;
+        }
+        corners = kept;
+        if corners.len() < MIN_CORNERS_PER_FRAME {
+            return None;
+        }
+    }
+    let sq: f64 = corners
+        .iter()
+        .map(|c| pixel_error(camera, &pose, c).map_or(f64::INFINITY, |e| e * e))
+        .sum();
+    let rms_px = (sq / corners.len() as f64).sqrt();
+    if !(rms_px <= MAX_FRAME_RMS_PX) {
+        return None;
+    }
+    let row_delay_s = corners.iter().map(|c| c.row_delay_s).sum::<f64>() / corners.len() as f64;
+    Some(FrameObs {
+        index,
+        t,
+        row_delay_s,
+        outliers: total - corners.len(),
+        corners,
+        cam_from_board: pose,
+        rms_px,
+    })
+}
+
+fn pixel_error(camera: &Camera, pose: &Pose, c: &CornerObs) -> Option<f64> {
+    let p = camera.project(&(pose * nalgebra::Point3::from(c.board)).coords)?;
+    Some((p.coords - c.pixel).norm())
+}
+
+/// Gauss–Newton on pixel residuals of one frame's pose (left perturbation).
+fn refine_pose(camera: &Camera, pose: &Pose, corners: &[CornerObs]) -> Option<Pose> {
+    let mut pose = *pose;
+    for _ in 0..POSE_ITERATIONS {
+        let mut h = Matrix6::<f64>::zeros();
+        let mut g = Vector6::<f64>::zeros();
+        for c in corners {
+            let pc = (pose * nalgebra::Point3::from(c.board)).coords;
+            let Some((px, dp)) = camera.project_with_jacobians(&pc, None) else {
+                continue;
+            };
+            let r = px.coords - c.pixel;
+            let mut dxi = nalgebra::Matrix3x6::<f64>::zeros();
+            dxi.fixed_view_mut::<3, 3>(0, 0).copy_from(&(-hat(&pc)));
+            dxi.fixed_view_mut::<3, 3>(0, 3)
+                .copy_from(&nalgebra::Matrix3::identity());
+            let a = dp * dxi;
+            h += a.transpose() * a;
+            g += a.transpose() * r;
+        }
+        let step = h.cholesky()?.solve(&(-g));
+        pose = se3_exp(&step) * pose;
+        if step.norm() < 1e-10 {
+            break;
+        }
+    }
+    Some(pose)
+}
+
+/// A camera angular-rate sample from two consecutive frames.
+#[derive(Debug, Clone, Copy)]
+pub struct RateSample {
+    /// Start of the interval (s, camera clock, rolling-shutter mean row).
+    pub t0: f64,
+    /// End of the interval.
+    pub t1: f64,
+    /// Mean body angular rate over the interval (rad/s, camera frame).
+    pub omega: Vector3<f64>,
+}
+
+/// Camera angular rates between consecutive accepted frames.
+pub fn camera_rates(frames: &[FrameObs], fps: f64) -> Vec<RateSample> {
+    frames
+        .windows(2)
+        .filter_map(|w| {
+            let (a, b) = (&w[0], &w[1]);
+            let t0 = a.t + a.row_delay_s;
+            let t1 = b.t + b.row_delay_s;
+            let dt = t1 - t0;
+            if !(dt > 0.0 && dt <= MAX_RATE_GAP_PERIODS * (b.index - a.index) as f64 / fps) {
+                return None;
+            }
+            // board_from_cam(t1) = board_from_cam(t0) · exp(ω dt), ω in the camera frame.
+            let ra = a.cam_from_board.rotation;
+            let rb = b.cam_from_board.rotation;
+            let omega = so3_log(&(ra * rb.inverse())) / dt;
+            Some(RateSample { t0, t1, omega })
+        })
+        .collect()
+}
+
+/// Running integrals of the gyro (vector and magnitude) for interval means at any time.
+pub struct GyroIntegral {
+    t: Vec<f64>,
+    vector: Vec<Vector3<f64>>,
+    magnitude: Vec<f64>,
+}
+
+impl GyroIntegral {
+    /// Trapezoidal integrals over the samples.
+    pub fn new(samples: &[ImuSample]) -> Self {
+        let mut t = Vec::with_capacity(samples.len());
+        let mut vector = Vec::with_capacity(samples.len());
+        let mut magnitude = Vec::with_capacity(samples.len());
+        let (mut v, mut m) = (Vector3::zeros(), 0.0);
+        for (i, s) in samples.iter().enumerate() {
+            if i > 0 {
+                let p = &samples[i - 1];
+                let dt = s.t - p.t;
+                v += (s.gyro + p.gyro) * (0.5 * dt);
+                m += (s.gyro.norm() + p.gyro.norm()) * 0.5 * dt;
+            }
+            t.push(s.t);
+            vector.push(v);
+            magnitude.push(m);
+        }
+        Self {
+            t,
+            vector,
+            magnitude,
+        }
+    }
+
+    fn at(&self, time: f64) -> Option<(Vector3<f64>, f64)> {
+        let n = self.t.len();
+        if n < 2 || time < self.t[0] || time > self.t[n - 1] {
+            return None;
+        }
+        let i = self.t.partition_point(|&x| x <= time).clamp(1, n - 1);
+        let (a, b) = (self.t[i - 1], self.t[i]);
+        let s = (time - a) / (b - a);
+        Some((
+            self.vector[i - 1] * (1.0 - s) + self.vector[i] * s,
+            self.magnitude[i - 1] * (1.0 - s) + self.magnitude[i] * s,
+        ))
+    }
+
+    /// Mean gyro vector and mean magnitude over `[t0, t1]` (IMU clock).
+    pub fn mean(&self, t0: f64, t1: f64) -> Option<(Vector3<f64>, f64)> {
+        let (v0, m0) = self.at(t0)?;
+        let (v1, m1) = self.at(t1)?;
+        let dt = t1 - t0;
+        Some(((v1 - v0) / dt, (m1 - m0) / dt))
+    }
+}
+
+/// Result of the coarse time-shift search.
+#[derive(Debug, Clone, Copy)]
+pub struct CoarseShift {
+    /// Time shift (s): `t_imu = t_cam + shift`.
+    pub shift_s: f64,
+    /// Normalised correlation at the peak.
+    pub correlation: f64,
+}
+
+/// Cross-correlate the camera's angular-rate magnitude with the gyro's over shifts
+/// `guess ± window`; the peak, refined by a parabola, is the coarse time shift.
+pub fn coarse_time_shift(
+    rates: &[RateSample],
+    gyro: &GyroIntegral,
+    guess: f64,
+    window: f64,
+) -> Option<CoarseShift> {
+    let steps = (window / SEARCH_STEP_S).ceil() as i64;
+    let cam: Vec<f64> = rates.iter().map(|r| r.omega.norm()).collect();
+    let score = |shift: f64| -> Option<f64> {
+        let mut pairs = Vec::with_capacity(rates.len());
+        for (r, &c) in rates.iter().zip(&cam) {
+            if let Some((_, m)) = gyro.mean(r.t0 + shift, r.t1 + shift) {
+                pairs.push((c, m));
+            }
+        }
+        // Demand most of the frames overlap the IMU log, else a shift off the end scores on a
+        // handful of pairs.
+        if pairs.len() < rates.len() / 2 || pairs.len() < 10 {
+            return None;
+        }
+        let n = pairs.len() as f64;
+        let (ma, mb) = pairs
+            .iter()
+            .fold((0.0, 0.0), |(a, b), (x, y)| (a + x / n, b + y / n));
+        let (mut sab, mut saa, mut sbb) = (0.0, 0.0, 0.0);
+        for (x, y) in &pairs {
+            sab += (x - ma) * (y - mb);
+            saa += (x - ma) * (x - ma);
+            sbb += (y - mb) * (y - mb);
+        }
+        let d = (saa * sbb).sqrt();
+        (d > 0.0).then(|| sab / d)
+    };
+    let scores: Vec<(f64, Option<f64>)> = (-steps..=steps)
+        .into_par_iter()
+        .map(|k| {
+            let s = guess + k as f64 * SEARCH_STEP_S;
+            (s, score(s))
+        })
+        .collect();
+    let (best, _) = scores
+        .iter()
+        .enumerate()
+        .filter_map(|(i, (_, c))| c.map(|c| (i, c)))
+        .max_by(|a, b| a.1.total_cmp(&b.1))?;
+    let c = scores[best].1?;
+    let mut shift = scores[best].0;
+    if best > 0
+        && best + 1 < scores.len()
+        && let (Some(l), Some(r)) = (scores[best - 1].1, scores[best + 1].1)
+    {
+        let denom = l - 2.0 * c + r;
+        if denom < 0.0 {
+            shift += 0.5 * (l - r) / denom * SEARCH_STEP_S;
+        }
+    }
+    Some(CoarseShift {
+        shift_s: shift,
+        correlation: c,
+    })
+}
+
+/// Rotation `cam_from_imu` and gyro bias from paired angular rates (`ω_cam = R (ω_imu − b)`),
+/// by alternating an SVD alignment and the bias mean.
+pub fn align_rates(
+    rates: &[RateSample],
+    gyro: &GyroIntegral,
+    shift: f64,
+) -> Option<(nalgebra::UnitQuaternion<f64>, Vector3<f64>)> {
+    let pairs: Vec<(Vector3<f64>, Vector3<f64>)> = rates
+        .iter()
+        .filter_map(|r| {
+            gyro.mean(r.t0 + shift, r.t1 + shift)
+                .map(|(v, _)| (r.omega, v))
+        })
+        .collect();
+    if pairs.len() < 10 {
+        return None;
+    }
+    let mut bias = Vector3::zeros();
+    let mut rot = nalgebra::UnitQuaternion::identity();
+    for _ in 0..4 {
+        let mut h = nalgebra::Matrix3::<f64>::zeros();
+        for (c, i) in &pairs {
+            h += (i - bias) * c.transpose();
+        }
+        let svd = h.svd(true, true);
+        let (u, v_t) = (svd.u?, svd.v_t?);
+        let mut d = nalgebra::Matrix3::identity();
+        if (v_t.transpose() * u.transpose()).determinant() < 0.0 {
+            d[(2, 2)] = -1.0;
+        }
+        let r = v_t.transpose() * d * u.transpose();
+        rot = nalgebra::UnitQuaternion::from_matrix(&r);
+        bias = pairs
+            .iter()
+            .fold(Vector3::zeros(), |a, (c, i)| a + (i - rot.inverse() * c))
+            / pairs.len() as f64;
+    }
+    Some((rot, bias))
+}
+
+/// RMS camera rotation rate and the weakest axis's share of the rotation energy.
+pub fn excitation(rates: &[RateSample]) -> (f64, f64) {
+    if rates.is_empty() {
+        return (0.0, 0.0);
+    }
+    let mut m = nalgebra::Matrix3::<f64>::zeros();
+    for r in rates {
+        m += r.omega * r.omega.transpose();
+    }
+    m /= rates.len() as f64;
+    let rms = m.trace().sqrt();
+    let eig = m.symmetric_eigenvalues();
+    let (lo, hi) = (eig.min(), eig.max());
+    (rms, if hi > 0.0 { lo / hi } else { 0.0 })
+}
