@@ -419,7 +419,9 @@ fn coarse_offset(enc: &EncoderSignal, vision: &[VisionSample]) -> Result<f64, Be
         if overlap < min_overlap {
             continue;
         }
-        let score = c[idx].re / overlap as f64;
+        // The raw sum (not divided by the overlap) favours long overlaps: a near-periodic
+        // motion correlates almost as well one cycle off, over a shorter overlap.
+        let score = c[idx].re;
         if best.is_none_or(|(s, _)| score > s) {
             best = Some((score, lag));
         }
