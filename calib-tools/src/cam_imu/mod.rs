@@ -38,6 +38,8 @@ use spline::{TrajectorySpline, VectorSpline};
 
 /// Fewest accepted frames per lens: fewer cannot separate the extrinsic from the trajectory.
 pub const MIN_FRAMES: usize = 40;
+/// Fewest accepted keyframes before tracking: enough angular-rate samples for the coarse shift.
+const MIN_KEYFRAMES: usize = 15;
 /// Default gravity magnitude (m/s²); the simulator's and a mid-latitude sea-level value.
 pub const DEFAULT_GRAVITY: f64 = 9.81;
 /// IMU noise used when the calibration has no `imu` block (typical MEMS IMU of an action camera;
@@ -67,6 +69,9 @@ pub struct CamImuOptions {
     pub target: PathBuf,
     /// Use every n-th frame.
     pub frame_step: usize,
+    /// Detect the board from scratch in every n-th used frame and track it (gyro-aided
+    /// prediction + sub-pixel refinement) in the frames between; 1 detects in every frame.
+    pub keyframe_step: usize,
     /// Starting time shift (s).
     pub time_shift_guess_s: f64,
     /// Half-width (s) of the coarse time-shift search.
@@ -93,6 +98,7 @@ impl CamImuOptions {
             intrinsics: intrinsics.to_path_buf(),
             target: target.to_path_buf(),
             frame_step: 1,
+            keyframe_step: 1,
             time_shift_guess_s: 0.0,
             search_window_s: 0.25,
             knot_spacing_s: 0.02,
@@ -378,97 +384,62 @@ pub fn calibrate(o: &CamImuOptions) -> Result<CamImuResult> {
             camera: &cameras[i],
         })
         .collect();
+    let gyro = GyroIntegral::new(&inputs.imu);
+    let keyframe_step = o.keyframe_step.max(1);
     let mut lenses = observe::observe(
         &lens_inputs,
         &inputs.target,
-        o.frame_step,
+        o.frame_step * keyframe_step,
         inputs.readout_s,
         o.progress,
     )?;
-    let detection_s = t_start.elapsed().as_secs_f64();
-    for l in &lenses {
-        if l.frames.len() < MIN_FRAMES {
-            return Err(input(
-                &capture.join(&l.name),
-                format!(
-                    "too few detections: the board was found in {} of {} frames of the {} lens \
-                     (need at least {MIN_FRAMES}); film the aprilgrid from closer and keep it in \
-                     view, check the target yaml matches the board ({}x{} tags of {} m)",
-                    l.frames.len(),
-                    l.frames_used,
-                    l.name,
-                    inputs.target.cols,
-                    inputs.target.rows,
-                    inputs.target.tag_size_m
-                ),
-            ));
+    if keyframe_step > 1 {
+        check_detections(
+            &lenses,
+            (MIN_FRAMES / keyframe_step).max(MIN_KEYFRAMES),
+            capture,
+            &inputs.target,
+        )?;
+        let total: usize = inputs.frames.iter().map(Vec::len).sum::<usize>() / o.frame_step.max(1);
+        let bar = if o.progress {
+            let b = indicatif::ProgressBar::new(total as u64);
+            if let Ok(style) = indicatif::ProgressStyle::with_template(
+                "tracking {bar:40} {pos}/{len} frames ({eta} left)",
+            ) {
+                b.set_style(style);
+            }
+            b
+        } else {
+            indicatif::ProgressBar::hidden()
+        };
+        for (l, lens) in lens_inputs.iter().enumerate() {
+            let (shift, rotation, bias, _) = coarse_align(&lenses[l], &gyro, o, inputs.fps)?;
+            let model = observe::TrackModel {
+                gyro: &gyro,
+                cam_from_imu: rotation,
+                shift_s: shift.shift_s,
+                gyro_bias: bias,
+            };
+            lenses[l] = observe::track(
+                lens,
+                &lenses[l],
+                &inputs.target,
+                &model,
+                o.frame_step.max(1),
+                keyframe_step,
+                inputs.readout_s,
+                &bar,
+            )?;
         }
+        bar.finish_and_clear();
     }
-
+    let detection_s = t_start.elapsed().as_secs_f64();
+    check_detections(&lenses, MIN_FRAMES, capture, &inputs.target)?;
     // Coarse alignment per lens.
     let t_init = Instant::now();
-    let gyro = GyroIntegral::new(&inputs.imu);
     let mut coarse = Vec::new();
     for l in &lenses {
-        let rates = observe::camera_rates(&l.frames, inputs.fps);
-        let (rms, share) = observe::excitation(&rates);
-        if rms < observe::MIN_ROTATION_RATE || share < observe::MIN_AXIS_SHARE {
-            return Err(input(
-                capture,
-                format!(
-                    "too little rotation excitation for the {} lens: RMS rate {rms:.2} rad/s \
-                     (need ≥ {}), weakest axis {:.1} % of the strongest (need ≥ {:.0} %); rotate \
-                     the camera about all three axes (roll, pitch, yaw) while filming the board",
-                    l.name,
-                    observe::MIN_ROTATION_RATE,
-                    100.0 * share,
-                    100.0 * observe::MIN_AXIS_SHARE
-                ),
-            ));
-        }
-        let shift = observe::coarse_time_shift(
-            &rates,
-            &gyro,
-            o.time_shift_guess_s,
-            o.search_window_s,
-        )
-        .ok_or_else(|| {
-            input(
-                &capture.join("imu.csv"),
-                format!(
-                    "the IMU log does not overlap the {} lens's frames for any time shift within \
-                     {} ± {} s; check imu.csv is on the camera clock (t in s)",
-                    l.name, o.time_shift_guess_s, o.search_window_s
-                ),
-            )
-        })?;
-        if shift.correlation < observe::MIN_CORRELATION {
-            return Err(input(
-                &capture.join("imu.csv"),
-                format!(
-                    "gyro/camera angular-rate correlation too weak for a time shift for the {} \
-                     lens: peak {:.2} at {:.1} ms (need ≥ {}); the gyro may not belong to this \
-                     camera, the shift may lie outside {} ± {} s (widen --search-window), or the \
-                     motion is too smooth — vary the rotation speed",
-                    l.name,
-                    shift.correlation,
-                    shift.shift_s * 1e3,
-                    observe::MIN_CORRELATION,
-                    o.time_shift_guess_s,
-                    o.search_window_s
-                ),
-            ));
-        }
-        let (rotation, bias) = observe::align_rates(&rates, &gyro, shift.shift_s)
-            .ok_or_else(|| input(capture, "too few angular-rate pairs to align".into()))?;
-        tracing::info!(
-            "{}: coarse time shift {:.2} ms (correlation {:.3}), rotation {:.2} deg",
-            l.name,
-            shift.shift_s * 1e3,
-            shift.correlation,
-            rotation.angle().to_degrees()
-        );
-        coarse.push((shift, rotation, bias, rms));
+        coarse.push(coarse_align(l, &gyro, o, inputs.fps)?);
     }
 
     let imu_t0 = inputs.imu.first().map_or(0.0, |s| s.t);
@@ -499,7 +470,7 @@ pub fn calibrate(o: &CamImuOptions) -> Result<CamImuResult> {
             ));
         }
     }
-    let mut lens_states: Vec<LensState> = coarse
+    let lens_states: Vec<LensState> = coarse
         .iter()
         .map(|(s, r, _, _)| LensState {
             cam_from_imu: Pose::from_parts(nalgebra::Translation3::identity(), *r),
@@ -805,6 +776,98 @@ pub fn calibrate(o: &CamImuOptions) -> Result<CamImuResult> {
         inputs: inputs.files,
         calibration,
     })
+}
+
+/// Fail with a useful message when a lens has fewer than `min` accepted frames.
+fn check_detections(
+    lenses: &[LensObservations],
+    min: usize,
+    capture: &Path,
+    target: &AprilGridTarget,
+) -> Result<()> {
+    for l in lenses {
+        if l.frames.len() < min {
+            return Err(input(
+                &capture.join(&l.name),
+                format!(
+                    "too few detections: the board was found in {} of {} frames of the {} lens \
+                     (need at least {min}); film the aprilgrid from closer and keep it in \
+                     view, check the target yaml matches the board ({}x{} tags of {} m)",
+                    l.frames.len(),
+                    l.frames_used,
+                    l.name,
+                    target.cols,
+                    target.rows,
+                    target.tag_size_m
+                ),
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// Coarse time shift, `cam_from_imu` rotation, gyro bias and RMS rotation rate of one lens.
+fn coarse_align(
+    l: &LensObservations,
+    gyro: &GyroIntegral,
+    o: &CamImuOptions,
+    fps: f64,
+) -> Result<(observe::CoarseShift, UnitQuaternion<f64>, Vector3<f64>, f64)> {
+    let capture = &o.capture;
+    let rates = observe::camera_rates(&l.frames, fps);
+    let (rms, share) = observe::excitation(&rates);
+    if rms < observe::MIN_ROTATION_RATE || share < observe::MIN_AXIS_SHARE {
+        return Err(input(
+            capture,
+            format!(
+                "too little rotation excitation for the {} lens: RMS rate {rms:.2} rad/s \
+                 (need ≥ {}), weakest axis {:.1} % of the strongest (need ≥ {:.0} %); rotate \
+                 the camera about all three axes (roll, pitch, yaw) while filming the board",
+                l.name,
+                observe::MIN_ROTATION_RATE,
+                100.0 * share,
+                100.0 * observe::MIN_AXIS_SHARE
+            ),
+        ));
+    }
+    let shift = observe::coarse_time_shift(&rates, &gyro, o.time_shift_guess_s, o.search_window_s)
+        .ok_or_else(|| {
+            input(
+                &capture.join("imu.csv"),
+                format!(
+                    "the IMU log does not overlap the {} lens's frames for any time shift within \
+                 {} ± {} s; check imu.csv is on the camera clock (t in s)",
+                    l.name, o.time_shift_guess_s, o.search_window_s
+                ),
+            )
+        })?;
+    if shift.correlation < observe::MIN_CORRELATION {
+        return Err(input(
+            &capture.join("imu.csv"),
+            format!(
+                "gyro/camera angular-rate correlation too weak for a time shift for the {} \
+                 lens: peak {:.2} at {:.1} ms (need ≥ {}); the gyro may not belong to this \
+                 camera, the shift may lie outside {} ± {} s (widen --search-window), or the \
+                 motion is too smooth — vary the rotation speed",
+                l.name,
+                shift.correlation,
+                shift.shift_s * 1e3,
+                observe::MIN_CORRELATION,
+                o.time_shift_guess_s,
+                o.search_window_s
+            ),
+        ));
+    }
+    let (rotation, bias) = observe::align_rates(&rates, &gyro, shift.shift_s)
+        .ok_or_else(|| input(capture, "too few angular-rate pairs to align".into()))?;
+    tracing::info!(
+        "{}: coarse time shift {:.2} ms (correlation {:.3}), rotation {:.2} deg",
+        l.name,
+        shift.shift_s * 1e3,
+        shift.correlation,
+        rotation.angle().to_degrees()
+    );
+    Ok((shift, rotation, bias, rms))
 }
 
 /// The 6 × 6 covariance block between lens `a`'s and lens `b`'s `cam_from_imu`, scaled.

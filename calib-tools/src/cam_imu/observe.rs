@@ -152,16 +152,12 @@ pub fn observe(
             }
             let detection = detector.detect(&gray)?;
             bar.inc(1);
-            let corners: Vec<CornerObs> = detection
-                .corners
-                .iter()
-                .map(|c| CornerObs {
-                    board: c.board_point(),
-                    pixel: Vector2::new(c.pixel[0], c.pixel[1]),
-                    row_delay_s: readout_s * (c.pixel[1] + 0.5) / f64::from(height),
-                })
-                .collect();
-            Ok(frame_pose(lens.camera, k, record.t, corners))
+            Ok(frame_pose(
+                lens.camera,
+                k,
+                record.t,
+                detected_corners(&detection, lens.camera, readout_s),
+            ))
         })
         .collect();
     bar.finish_and_clear();
@@ -502,4 +498,201 @@ pub fn excitation(rates: &[RateSample]) -> (f64, f64) {
     let eig = m.symmetric_eigenvalues();
     let (lo, hi) = (eig.min(), eig.max());
     (rms, if hi > 0.0 { lo / hi } else { 0.0 })
+}
+
+/// A tracked tag is dropped if refinement moves any of its corners further than this from the
+/// prediction (px): the prediction (gyro rotation, constant-velocity translation) is good to a
+/// few tenths of a pixel, so a larger move means the refinement locked onto another edge.
+const MAX_TRACK_DISPLACEMENT_PX: f64 = 1.5;
+/// Predicted corners closer than this to the image edge are not tracked (px).
+const TRACK_BORDER_PX: f64 = 6.0;
+/// Tags seen more obliquely than this (cosine of the angle between the board normal and the
+/// ray) are not tracked: foreshortened tags refine poorly.
+const MIN_TRACK_COSINE: f64 = 0.26;
+
+/// Gyro-aided prediction of frames between keyframes: what tracking needs.
+pub struct TrackModel<'a> {
+    /// Gyro integrals.
+    pub gyro: &'a GyroIntegral,
+    /// `cam_from_imu` rotation of the lens.
+    pub cam_from_imu: nalgebra::UnitQuaternion<f64>,
+    /// Time shift (s).
+    pub shift_s: f64,
+    /// Gyro bias (rad/s).
+    pub gyro_bias: Vector3<f64>,
+}
+
+/// Fill in the frames between accepted keyframes by tracking: each frame's board pose is
+/// predicted from the previous one (rotation from the gyro through `cam_from_imu`, translation
+/// at constant velocity), every visible tag's corners are projected and refined with
+/// `cornerSubPix` in the image, and the frame goes through the same robust pose check as a
+/// detected one. A frame whose tracking fails is detected from scratch.
+pub fn track(
+    lens: &LensInput<'_>,
+    keyframes: &LensObservations,
+    target: &AprilGridTarget,
+    model: &TrackModel<'_>,
+    step: usize,
+    keyframe_step: usize,
+    readout_s: f64,
+    progress: &ProgressBar,
+) -> Result<LensObservations> {
+    let detector = Detector::new(*target);
+    let segments: Vec<&FrameObs> = keyframes.frames.iter().collect();
+    let tracked: Vec<Result<(Vec<FrameObs>, usize)>> = segments
+        .par_iter()
+        .map(|key| {
+            let mut out = vec![(*key).clone()];
+            let mut rejected = 0;
+            let end = (key.index + keyframe_step * step).min(lens.frames.len());
+            for k in (key.index + step..end).step_by(step) {
+                let record = &lens.frames[k];
+                let gray = load_gray(&lens.dir.join(&record.file))?;
+                let n = out.len();
+                let prev = &out[n - 1];
+                // Only a frame right before the previous one gives a usable velocity.
+                let prev2 = (n >= 2 && out[n - 2].index + step == prev.index).then(|| &out[n - 2]);
+                let predicted = predict(prev, prev2, record.t, model);
+                let corners = track_corners(&gray, lens.camera, target, &predicted, readout_s)?;
+                let mut frame = frame_pose(lens.camera, k, record.t, corners);
+                if frame.is_none() {
+                    let d = detector.detect(&gray)?;
+                    frame = frame_pose(
+                        lens.camera,
+                        k,
+                        record.t,
+                        detected_corners(&d, lens.camera, readout_s),
+                    );
+                }
+                progress.inc(1);
+                match frame {
+                    Some(f) => out.push(f),
+                    None => rejected += 1,
+                }
+            }
+            Ok((out, rejected))
+        })
+        .collect();
+    let mut result = LensObservations {
+        frames: Vec::new(),
+        frames_used: keyframes.frames_used,
+        frames_rejected: keyframes.frames_rejected,
+        ..keyframes.clone()
+    };
+    result.frames.clear();
+    for r in tracked {
+        let (frames, rejected) = r?;
+        result.frames_used += frames.len() + rejected - 1;
+        result.frames_rejected += rejected;
+        result.frames.extend(frames);
+    }
+    result.frames.sort_by_key(|f| f.index);
+    Ok(result)
+}
+
+fn detected_corners(
+    d: &crate::detect::Detection,
+    camera: &Camera,
+    readout_s: f64,
+) -> Vec<CornerObs> {
+    let (_, height) = camera.resolution();
+    d.corners
+        .iter()
+        .map(|c| CornerObs {
+            board: c.board_point(),
+            pixel: Vector2::new(c.pixel[0], c.pixel[1]),
+            row_delay_s: readout_s * (c.pixel[1] + 0.5) / f64::from(height),
+        })
+        .collect()
+}
+
+/// `cam_from_board` at `t`: the previous frame's pose advanced by the gyro's rotation and, with
+/// two previous frames, by their velocity.
+fn predict(prev: &FrameObs, prev2: Option<&FrameObs>, t: f64, m: &TrackModel<'_>) -> Pose {
+    let t0 = prev.t + prev.row_delay_s;
+    let t1 = t + prev.row_delay_s;
+    let dt = t1 - t0;
+    let omega_imu = m
+        .gyro
+        .mean(t0 + m.shift_s, t1 + m.shift_s)
+        .map_or(Vector3::zeros(), |(v, _)| v - m.gyro_bias);
+    // board_from_cam(t1) = board_from_cam(t0) · exp(ω_cam dt).
+    let step = kiwi_core::geometry::so3_exp(&(m.cam_from_imu * omega_imu * dt));
+    let board_from_cam0 = prev.cam_from_board.inverse();
+    let mut position = board_from_cam0.translation.vector;
+    if let Some(p2) = prev2 {
+        let b2 = p2.cam_from_board.inverse();
+        let dt2 = t0 - (p2.t + p2.row_delay_s);
+        if dt2 > 0.0 {
+            position += (position - b2.translation.vector) * (dt / dt2);
+        }
+    }
+    let board_from_cam = Pose::from_parts(
+        nalgebra::Translation3::from(position),
+        board_from_cam0.rotation * step,
+    );
+    board_from_cam.inverse()
+}
+
+/// Project every tag the predicted pose shows well and refine its corners in the image.
+fn track_corners(
+    gray: &image::GrayImage,
+    camera: &Camera,
+    target: &AprilGridTarget,
+    cam_from_board: &Pose,
+    readout_s: f64,
+) -> Result<Vec<CornerObs>> {
+    let (w, h) = camera.resolution();
+    let (w, h) = (f64::from(w), f64::from(h));
+    let normal = cam_from_board.rotation * Vector3::z();
+    let mut tags: Vec<(u32, [Point2<f64>; 4])> = Vec::new();
+    let mut boards: Vec<[Vector3<f64>; 4]> = Vec::new();
+    'tags: for tag in 0..target.tag_count() {
+        let mut px = [Point2::origin(); 4];
+        let mut bp = [Vector3::zeros(); 4];
+        for k in 0..4 {
+            let b = target.point(target.corner_point_id(tag, k));
+            let pc = (cam_from_board * nalgebra::Point3::from(b)).coords;
+            // Facing the camera, not too oblique.
+            if -normal.dot(&pc) < MIN_TRACK_COSINE * pc.norm() {
+                continue 'tags;
+            }
+            let Some(p) = camera.project(&pc) else {
+                continue 'tags;
+            };
+            if p.x < TRACK_BORDER_PX
+                || p.y < TRACK_BORDER_PX
+                || p.x > w - 1.0 - TRACK_BORDER_PX
+                || p.y > h - 1.0 - TRACK_BORDER_PX
+            {
+                continue 'tags;
+            }
+            px[k] = p;
+            bp[k] = b;
+        }
+        tags.push((tag as u32, px));
+        boards.push(bp);
+    }
+    if tags.is_empty() {
+        return Ok(Vec::new());
+    }
+    let refined = crate::detect::refine_corners(gray, &tags)?;
+    let mut out = Vec::with_capacity(4 * tags.len());
+    for (((_, pred), bp), new) in tags.iter().zip(&boards).zip(refined.chunks(4)) {
+        if pred
+            .iter()
+            .zip(new)
+            .any(|(a, b)| (a - b).norm() > MAX_TRACK_DISPLACEMENT_PX)
+        {
+            continue;
+        }
+        for (b, p) in bp.iter().zip(new) {
+            out.push(CornerObs {
+                board: *b,
+                pixel: Vector2::new(p.x, p.y),
+                row_delay_s: readout_s * (p.y + 0.5) / h,
+            });
+        }
+    }
+    Ok(out)
 }

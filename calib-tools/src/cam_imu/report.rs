@@ -56,6 +56,10 @@ pub struct CamImuArgs {
     /// Use every N-th frame (1 = all).
     #[arg(long, default_value_t = 1)]
     pub frame_step: usize,
+    /// Detect the board from scratch in every N-th used frame and track it (gyro-aided
+    /// prediction + sub-pixel refinement) in between; 1 detects in every frame.
+    #[arg(long, default_value_t = 1)]
+    pub keyframe_step: usize,
     /// Starting guess of the time shift in seconds (t_imu = t_cam + shift).
     #[arg(long, default_value_t = 0.0)]
     pub time_shift_guess: f64,
@@ -115,6 +119,7 @@ pub fn run(args: &CamImuArgs) -> Result<(CamImuResult, WrittenFiles)> {
     }
     let mut o = CamImuOptions::new(&args.capture, &args.intrinsics, &args.target);
     o.frame_step = args.frame_step;
+    o.keyframe_step = args.keyframe_step.max(1);
     o.time_shift_guess_s = args.time_shift_guess;
     o.search_window_s = args.search_window;
     o.knot_spacing_s = args.knot_spacing;
