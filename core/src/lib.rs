@@ -25,5 +25,6 @@ pub mod io;
 pub mod kalibr;
 pub mod layout;
 pub mod rig;
+pub mod tool;
 
 pub use error::{CoreError, Result};

@@ -1,0 +1,351 @@
+//! Tool definitions (`hardware/tools/*.toml`): the geometry of a wrist tool in the front-lens
+//! frame — hinge and jaws, the row of red dots on each jaw, the body ArUco tag and the
+//! camera-to-tip transform. The simulator renders tools from these files and the gripper
+//! estimator measures openings with them, so both read the same numbers.
+
+use std::path::Path;
+
+use nalgebra::{Isometry3, Matrix3, Translation3, UnitQuaternion, Vector3};
+use serde::{Deserialize, Serialize};
+
+use crate::error::{CoreError, Result};
+use crate::geometry::Pose;
+use crate::layout::ToolKind;
+
+/// Schema version of tool definition files.
+pub const TOOL_SCHEMA_VERSION: u32 = 1;
+/// Tolerance on unit lengths and perpendicularity of the definition's directions and rotation.
+const ORTHO_TOL: f64 = 1e-6;
+
+/// The pivot (chopstick) or rail centre (parallel jaw) and the dot plane's orientation.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct HingeDef {
+    /// Hinge position in the front-lens frame (m).
+    pub in_front_m: [f64; 3],
+    /// Direction the closed jaws point (normalized on load).
+    pub jaw_direction: [f64; 3],
+    /// Dot-plane normal, away from the camera (normalized on load).
+    pub plane_normal: [f64; 3],
+}
+
+/// Jaw dimensions.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct JawsDef {
+    /// Jaw length (m).
+    pub length_m: f64,
+    /// Hinge to the jaw's near end (m).
+    pub offset_m: f64,
+    /// Jaw centre plane to the dotted face (m).
+    pub half_thickness_m: f64,
+    /// Dot line to the jaw's inner face (m).
+    pub half_width_m: f64,
+    /// Widest opening: rad (chopstick) or m (parallel jaw).
+    pub max_opening: f64,
+}
+
+/// The row of dots on each jaw.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DotsDef {
+    /// Dots per jaw.
+    pub count: usize,
+    /// Centre-to-centre spacing (m).
+    pub pitch_m: f64,
+    /// Dot radius (m).
+    pub radius_m: f64,
+    /// Printed colour (sRGB).
+    pub color_rgb: [u8; 3],
+}
+
+/// The body ArUco tag.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MarkerDef {
+    /// ArUco dictionary name.
+    pub dictionary: String,
+    /// Tag id.
+    pub id: usize,
+    /// Side of the black square (m).
+    pub size_m: f64,
+    /// Tag centre behind the hinge along the jaw direction, in the dot plane (m).
+    pub behind_hinge_m: f64,
+}
+
+/// A rigid transform as written in the file.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TransformDef {
+    /// Rotation matrix, rows.
+    pub rotation: [[f64; 3]; 3],
+    /// Translation (m).
+    pub translation_m: [f64; 3],
+}
+
+/// A tool definition file.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ToolDefinition {
+    /// [`TOOL_SCHEMA_VERSION`].
+    pub schema_version: u32,
+    /// Tool name.
+    pub name: String,
+    /// Which tool.
+    pub kind: ToolKind,
+    /// Hinge and dot plane.
+    pub hinge: HingeDef,
+    /// Jaw dimensions.
+    pub jaws: JawsDef,
+    /// Dot layout.
+    pub dots: DotsDef,
+    /// Body tag.
+    pub marker: MarkerDef,
+    /// `front_from_tip` (the camera-to-tip transform).
+    pub cam_from_tip: TransformDef,
+}
+
+const CHOPSTICK: &str = include_str!("../../hardware/tools/chopstick.toml");
+const PARALLEL_JAW: &str = include_str!("../../hardware/tools/parallel_jaw.toml");
+const BARE_HAND: &str = include_str!("../../hardware/tools/bare_hand.toml");
+
+fn unit3(v: [f64; 3]) -> Option<Vector3<f64>> {
+    let v = Vector3::from(v);
+    let n = v.norm();
+    (n.is_finite() && n > 0.0).then(|| v / n)
+}
+
+impl ToolDefinition {
+    /// The definition shipped in `hardware/tools/` for a kind of tool.
+    pub fn builtin(kind: ToolKind) -> Result<Self> {
+        let (name, text) = match kind {
+            ToolKind::Chopstick => ("hardware/tools/chopstick.toml", CHOPSTICK),
+            ToolKind::ParallelJaw => ("hardware/tools/parallel_jaw.toml", PARALLEL_JAW),
+            ToolKind::BareHand => ("hardware/tools/bare_hand.toml", BARE_HAND),
+        };
+        Self::parse(text, Path::new(name))
+    }
+
+    /// Read and validate a definition file.
+    pub fn load(path: &Path) -> Result<Self> {
+        let text = crate::io::read_text(path)?;
+        Self::parse(&text, path)
+    }
+
+    /// Parse and validate definition text; `path` names it in errors.
+    pub fn parse(text: &str, path: &Path) -> Result<Self> {
+        let de = toml::Deserializer::parse(text).map_err(|e| CoreError::Parse {
+            path: path.to_path_buf(),
+            format: "TOML",
+            field: ".".into(),
+            message: e.to_string(),
+            fix: "fix the syntax (see hardware/tools/README.md)".into(),
+        })?;
+        let def: Self = serde_path_to_error::deserialize(de).map_err(|e| CoreError::Parse {
+            path: path.to_path_buf(),
+            format: "TOML tool definition",
+            field: e.path().to_string(),
+            message: e.inner().to_string(),
+            fix: "compare with hardware/tools/chopstick.toml and README.md there".into(),
+        })?;
+        def.validate().map_err(|e| e.at_path(path))?;
+        Ok(def)
+    }
+
+    /// Check every number (finite, positive where it must be, unit and perpendicular
+    /// directions, a proper rotation).
+    pub fn validate(&self) -> Result<()> {
+        let bad = |field: &str, expected: &str, found: String| {
+            Err(CoreError::invalid_value(
+                field,
+                expected,
+                found,
+                "measure it again as hardware/tools/README.md describes",
+            ))
+        };
+        if self.schema_version != TOOL_SCHEMA_VERSION {
+            return bad("schema_version", "1", self.schema_version.to_string());
+        }
+        let Some(d) = unit3(self.hinge.jaw_direction) else {
+            return bad(
+                "hinge.jaw_direction",
+                "a non-zero finite vector",
+                format!("{:?}", self.hinge.jaw_direction),
+            );
+        };
+        let Some(n) = unit3(self.hinge.plane_normal) else {
+            return bad(
+                "hinge.plane_normal",
+                "a non-zero finite vector",
+                format!("{:?}", self.hinge.plane_normal),
+            );
+        };
+        if d.dot(&n).abs() > ORTHO_TOL {
+            return bad(
+                "hinge.plane_normal",
+                "perpendicular to hinge.jaw_direction",
+                format!("cosine {:.3e}", d.dot(&n)),
+            );
+        }
+        if !self.hinge.in_front_m.iter().all(|v| v.is_finite()) {
+            return bad(
+                "hinge.in_front_m",
+                "finite metres",
+                format!("{:?}", self.hinge.in_front_m),
+            );
+        }
+        let positive = [
+            ("jaws.length_m", self.jaws.length_m),
+            ("jaws.half_thickness_m", self.jaws.half_thickness_m),
+            ("jaws.half_width_m", self.jaws.half_width_m),
+            ("dots.radius_m", self.dots.radius_m),
+            ("marker.size_m", self.marker.size_m),
+        ];
+        for (field, v) in positive {
+            if !(v.is_finite() && v > 0.0) {
+                return bad(field, "a positive length in m", v.to_string());
+            }
+        }
+        let non_negative = [
+            ("jaws.offset_m", self.jaws.offset_m),
+            ("jaws.max_opening", self.jaws.max_opening),
+            ("dots.pitch_m", self.dots.pitch_m),
+            ("marker.behind_hinge_m", self.marker.behind_hinge_m),
+        ];
+        for (field, v) in non_negative {
+            if !(v.is_finite() && v >= 0.0) {
+                return bad(field, "a finite value ≥ 0", v.to_string());
+            }
+        }
+        if self.kind != ToolKind::BareHand {
+            if self.dots.count < 2 {
+                return bad(
+                    "dots.count",
+                    "at least 2 dots per jaw",
+                    self.dots.count.to_string(),
+                );
+            }
+            let span = self.dots.pitch_m * (self.dots.count - 1) as f64 + 2.0 * self.dots.radius_m;
+            if span > self.jaws.length_m + 1e-9 || self.dots.pitch_m < 2.0 * self.dots.radius_m {
+                return bad(
+                    "dots.pitch_m",
+                    "dots apart from each other and within the jaw length",
+                    format!(
+                        "pitch {} m, {} dots, jaw {} m",
+                        self.dots.pitch_m, self.dots.count, self.jaws.length_m
+                    ),
+                );
+            }
+            if !(self.jaws.max_opening > 0.0) {
+                return bad(
+                    "jaws.max_opening",
+                    "a positive opening",
+                    self.jaws.max_opening.to_string(),
+                );
+            }
+        }
+        let r = Matrix3::from_fn(|i, j| self.cam_from_tip.rotation[i][j]);
+        let ortho = (r.transpose() * r - Matrix3::identity()).abs().max();
+        if !(ortho < ORTHO_TOL * 10.0 && (r.determinant() - 1.0).abs() < ORTHO_TOL * 10.0) {
+            return bad(
+                "cam_from_tip.rotation",
+                "a proper rotation matrix (orthonormal rows, determinant +1)",
+                format!("|RᵀR − I| = {ortho:.2e}, det {:.6}", r.determinant()),
+            );
+        }
+        if !self
+            .cam_from_tip
+            .translation_m
+            .iter()
+            .all(|v| v.is_finite())
+        {
+            return bad(
+                "cam_from_tip.translation_m",
+                "finite metres",
+                format!("{:?}", self.cam_from_tip.translation_m),
+            );
+        }
+        Ok(())
+    }
+
+    /// Hinge position in the front-lens frame (m).
+    pub fn hinge(&self) -> Vector3<f64> {
+        Vector3::from(self.hinge.in_front_m)
+    }
+
+    /// Unit direction the closed jaws point.
+    pub fn jaw_direction(&self) -> Vector3<f64> {
+        unit3(self.hinge.jaw_direction).unwrap_or_else(Vector3::z)
+    }
+
+    /// Unit normal of the dot plane (away from the camera).
+    pub fn plane_normal(&self) -> Vector3<f64> {
+        unit3(self.hinge.plane_normal).unwrap_or_else(Vector3::y)
+    }
+
+    /// Dot positions along a jaw, measured from the jaw's middle (m).
+    pub fn dot_positions_m(&self) -> Vec<f64> {
+        let n = self.dots.count;
+        (0..n)
+            .map(|k| (k as f64 - (n as f64 - 1.0) / 2.0) * self.dots.pitch_m)
+            .collect()
+    }
+
+    /// `front_from_tip`.
+    pub fn cam_from_tip(&self) -> Pose {
+        let r = Matrix3::from_fn(|i, j| self.cam_from_tip.rotation[i][j]);
+        Isometry3::from_parts(
+            Translation3::from(Vector3::from(self.cam_from_tip.translation_m)),
+            UnitQuaternion::from_matrix(&r),
+        )
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+
+    #[test]
+    fn builtin_definitions_load_and_are_consistent() {
+        for kind in [
+            ToolKind::Chopstick,
+            ToolKind::ParallelJaw,
+            ToolKind::BareHand,
+        ] {
+            let d = ToolDefinition::builtin(kind).unwrap();
+            assert_eq!(d.kind, kind);
+            // The tip lies on the jaw direction from the hinge.
+            let tip = d.cam_from_tip().translation.vector - d.hinge();
+            assert!(
+                tip.normalize().dot(&d.jaw_direction()) > 1.0 - 1e-8,
+                "{kind:?}"
+            );
+            // The tip frame's z is the jaw direction.
+            let z = d.cam_from_tip().rotation * Vector3::z();
+            assert!((z - d.jaw_direction()).norm() < 1e-8);
+        }
+        let c = ToolDefinition::builtin(ToolKind::Chopstick).unwrap();
+        let tip = c.cam_from_tip().translation.vector - c.hinge();
+        assert!((tip.norm() - (c.jaws.offset_m + c.jaws.length_m)).abs() < 1e-8);
+        assert_eq!(c.dot_positions_m().len(), 8);
+        assert!((c.dot_positions_m()[0] + 0.07).abs() < 1e-12);
+    }
+
+    #[test]
+    fn errors_name_the_field() {
+        let text = CHOPSTICK.replace("radius_m = 0.0028", "radius_m = -1.0");
+        let e = ToolDefinition::parse(&text, Path::new("x.toml")).unwrap_err();
+        assert_eq!(e.field(), Some("dots.radius_m"));
+        assert!(e.to_string().contains("x.toml"));
+        let text = CHOPSTICK.replace(
+            "plane_normal = [0.0, 1.0, -0.5]",
+            "plane_normal = [0.0, 1.0, 0.0]",
+        );
+        let e = ToolDefinition::parse(&text, Path::new("x.toml")).unwrap_err();
+        assert_eq!(e.field(), Some("hinge.plane_normal"));
+        let text = CHOPSTICK.replace("count = 8", "count = 8\nextra = 1");
+        let e = ToolDefinition::parse(&text, Path::new("x.toml")).unwrap_err();
+        assert!(e.to_string().contains("extra"), "{e}");
+    }
+}
