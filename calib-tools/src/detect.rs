@@ -498,7 +498,10 @@ fn bilinear(img: &GrayImage, x: f64, y: f64) -> u8 {
 }
 
 /// `cornerSubPix` on every tag corner (4 per tag, in order).
-fn refine_corners(gray: &GrayImage, tags: &[(u32, [Point2<f64>; 4])]) -> Result<Vec<Point2<f64>>> {
+pub(crate) fn refine_corners(
+    gray: &GrayImage,
+    tags: &[(u32, [Point2<f64>; 4])],
+) -> Result<Vec<Point2<f64>>> {
     let cv = |e: opencv::Error| CalibError::Internal(format!("OpenCV cornerSubPix: {e}"));
     let mat =
         Mat::new_rows_cols_with_data(gray.height() as i32, gray.width() as i32, gray.as_raw())
