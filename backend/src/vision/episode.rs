@@ -249,9 +249,10 @@ pub fn build_map(
         let img = stream.load(kf.frame as usize)?;
         features.push(orb.extract(&img, Some(&stream.mask), &stream.camera)?);
     }
-    let mut map = VisualMap::from_reconstruction(
+    let mut map = VisualMap::from_reconstruction_described(
         &recon,
         &features,
+        tracker.track_descriptors(),
         &stream.camera_name,
         &stream.lens,
         &stream.episode_name(),

@@ -5,12 +5,16 @@
 //! keypoints are detected away from the surviving tracks (inside the static mask) and start new
 //! tracks. Each frame yields a [`MappingFrame`] for [`crate::vision::mapping::reconstruct`].
 
+use std::collections::BTreeMap;
+
 use nalgebra::Point2;
 
 use kiwi_core::camera::CameraModel;
 
 use crate::error::Result;
-use crate::vision::features::{GrayImage, KltOptions, Mask, OrbExtractor, OrbOptions, track_klt};
+use crate::vision::features::{
+    Descriptor, GrayImage, KltOptions, Mask, OrbExtractor, OrbOptions, track_klt,
+};
 use crate::vision::mapping::{MappingFrame, TrackObservation};
 
 /// Front-end settings.
@@ -49,6 +53,7 @@ pub struct FrameTracker {
     next_track: u64,
     previous: Option<GrayImage>,
     active: Vec<(u64, Point2<f64>)>,
+    births: BTreeMap<u64, Descriptor>,
 }
 
 impl FrameTracker {
@@ -61,7 +66,14 @@ impl FrameTracker {
             next_track: 0,
             previous: None,
             active: Vec::new(),
+            births: BTreeMap::new(),
         })
+    }
+
+    /// The ORB descriptor of each track where it was detected (its first frame): lets the map
+    /// describe landmarks that no keyframe keypoint lands on.
+    pub fn track_descriptors(&self) -> &BTreeMap<u64, Descriptor> {
+        &self.births
     }
 
     /// Track into the next image and top up the tracks; returns the frame's observations.
@@ -101,7 +113,7 @@ impl FrameTracker {
             let r = self.options.min_distance_px;
             block_disks(&mut detect_mask, survivors.iter().map(|s| s.1), r);
             let found = self.orb.extract(&image, Some(&detect_mask), camera)?;
-            for kp in found.keypoints {
+            for (kp, desc) in found.keypoints.into_iter().zip(found.descriptors) {
                 if survivors.len() >= wanted {
                     break;
                 }
@@ -112,6 +124,7 @@ impl FrameTracker {
                 block_disks(&mut detect_mask, std::iter::once(kp.pixel), r);
                 let id = self.next_track;
                 self.next_track += 1;
+                self.births.insert(id, desc);
                 survivors.push((id, kp.pixel));
                 observations.push(TrackObservation {
                     track: id,

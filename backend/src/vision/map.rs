@@ -436,6 +436,31 @@ impl VisualMap {
         episode: &str,
         camera: &dyn CameraModel,
     ) -> Result<Self> {
+        Self::from_reconstruction_described(
+            recon,
+            keyframe_features,
+            &std::collections::BTreeMap::new(),
+            camera_name,
+            lens,
+            episode,
+            camera,
+        )
+    }
+
+    /// [`VisualMap::from_reconstruction`], and in addition every keyframe observation of a
+    /// mapped track that no keyframe keypoint lands on becomes a feature of that keyframe with
+    /// the track's descriptor from `track_descriptors` (taken where the front-end detected the
+    /// track), so that far more landmarks are described and matchable.
+    #[allow(clippy::too_many_arguments)]
+    pub fn from_reconstruction_described(
+        recon: &crate::vision::mapping::Reconstruction,
+        keyframe_features: &[crate::vision::features::FrameFeatures],
+        track_descriptors: &std::collections::BTreeMap<u64, Descriptor>,
+        camera_name: &str,
+        lens: &str,
+        episode: &str,
+        camera: &dyn CameraModel,
+    ) -> Result<Self> {
         if keyframe_features.len() != recon.keyframes.len() {
             return Err(BackendError::Vision {
                 context: "map export".into(),
@@ -451,6 +476,10 @@ impl VisualMap {
         let mut described: std::collections::BTreeMap<u64, Vec<Descriptor>> =
             std::collections::BTreeMap::new();
         let mut feature_track: Vec<Vec<Option<u64>>> = Vec::with_capacity(recon.keyframes.len());
+        let mut born: std::collections::BTreeMap<u64, Descriptor> =
+            std::collections::BTreeMap::new();
+        let mut extras: Vec<Vec<(crate::vision::mapping::TrackObservation, Descriptor)>> =
+            Vec::with_capacity(recon.keyframes.len());
         let r2 = ASSOCIATION_RADIUS_PX * ASSOCIATION_RADIUS_PX;
         for (kf, feats) in recon.keyframes.iter().zip(keyframe_features) {
             let mapped: Vec<&crate::vision::mapping::TrackObservation> = kf
@@ -475,7 +504,28 @@ impl VisualMap {
                 }
                 tracks.push(track);
             }
+            let mut more = Vec::new();
+            for o in &mapped {
+                if used.contains(&o.track) {
+                    continue;
+                }
+                if let Some(d) = track_descriptors.get(&o.track) {
+                    more.push((**o, *d));
+                }
+            }
             feature_track.push(tracks);
+            extras.push(more);
+        }
+        // Tracks no keyframe keypoint describes take their detection descriptor (keypoint
+        // descriptors, when there are any, stay the landmark's: they are the ones a query's ORB
+        // reproduces best).
+        for (o, d) in extras.iter().flatten() {
+            if !described.contains_key(&o.track) {
+                born.entry(o.track).or_insert(*d);
+            }
+        }
+        for (t, d) in &born {
+            described.insert(*t, vec![*d]);
         }
         let mut index: std::collections::BTreeMap<u64, u32> = std::collections::BTreeMap::new();
         for (track, descs) in &described {
@@ -488,28 +538,36 @@ impl VisualMap {
                 descriptor: medoid(descs),
             });
         }
-        for ((kf, feats), tracks) in recon
+        for (((kf, feats), tracks), more) in recon
             .keyframes
             .iter()
             .zip(keyframe_features)
             .zip(feature_track)
+            .zip(extras)
         {
+            let mut features: Vec<MapFeature> = feats
+                .keypoints
+                .iter()
+                .zip(&feats.descriptors)
+                .zip(tracks)
+                .map(|((kp, d), t)| MapFeature {
+                    pixel: [kp.pixel.x, kp.pixel.y],
+                    bearing: [kp.bearing.x, kp.bearing.y, kp.bearing.z],
+                    descriptor: *d,
+                    landmark: t.and_then(|t| index.get(&t).copied()),
+                })
+                .collect();
+            features.extend(more.iter().map(|(o, d)| MapFeature {
+                pixel: [o.pixel.x, o.pixel.y],
+                bearing: [o.bearing.x, o.bearing.y, o.bearing.z],
+                descriptor: *d,
+                landmark: index.get(&o.track).copied(),
+            }));
             map.keyframes.push(MapKeyframe {
                 frame: kf.frame,
                 t: kf.t,
                 cam_from_map: MapPose::from_pose(&kf.cam_from_world),
-                features: feats
-                    .keypoints
-                    .iter()
-                    .zip(&feats.descriptors)
-                    .zip(tracks)
-                    .map(|((kp, d), t)| MapFeature {
-                        pixel: [kp.pixel.x, kp.pixel.y],
-                        bearing: [kp.bearing.x, kp.bearing.y, kp.bearing.z],
-                        descriptor: *d,
-                        landmark: t.and_then(|t| index.get(&t).copied()),
-                    })
-                    .collect(),
+                features,
             });
         }
         Ok(map)
