@@ -7,6 +7,7 @@
 
 pub mod error;
 pub mod estimate;
+pub mod gripper;
 pub mod inspect;
 pub mod sync;
 pub mod vision;

@@ -236,7 +236,7 @@ impl ToolDefinition {
                     ),
                 );
             }
-            if !(self.jaws.max_opening > 0.0) {
+            if self.jaws.max_opening <= 0.0 {
                 return bad(
                     "jaws.max_opening",
                     "a positive opening",
