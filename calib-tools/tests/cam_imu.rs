@@ -49,6 +49,7 @@ fn args(cap: &Path, intrinsics: &Path, out: &Path, guess: f64) -> CamImuArgs {
         target: cap.join("target.yaml"),
         out: out.to_path_buf(),
         frame_step: 1,
+        keyframe_interval: kiwi_calib::cam_imu::DEFAULT_KEYFRAME_INTERVAL_S,
         time_shift_guess: guess,
         search_window: 0.25,
         knot_spacing: 0.02,

@@ -38,6 +38,10 @@ use spline::{TrajectorySpline, VectorSpline};
 
 /// Fewest accepted frames per lens: fewer cannot separate the extrinsic from the trajectory.
 pub const MIN_FRAMES: usize = 40;
+/// Default keyframe interval (s): 5 Hz keyframes give the coarse alignment dozens of
+/// angular-rate samples per ten seconds while full detection runs on a twenty-fourth of the
+/// frames of a 120 Hz video.
+pub const DEFAULT_KEYFRAME_INTERVAL_S: f64 = 0.2;
 /// Fewest accepted keyframes before tracking: enough angular-rate samples for the coarse shift.
 const MIN_KEYFRAMES: usize = 15;
 /// Default gravity magnitude (m/s²); the simulator's and a mid-latitude sea-level value.
@@ -69,9 +73,9 @@ pub struct CamImuOptions {
     pub target: PathBuf,
     /// Use every n-th frame.
     pub frame_step: usize,
-    /// Detect the board from scratch in every n-th used frame and track it (gyro-aided
-    /// prediction + sub-pixel refinement) in the frames between; 1 detects in every frame.
-    pub keyframe_step: usize,
+    /// Detect the board from scratch in a keyframe this often (s) and track it (gyro-aided
+    /// prediction + sub-pixel refinement) in the frames between; 0 detects in every frame.
+    pub keyframe_interval_s: f64,
     /// Starting time shift (s).
     pub time_shift_guess_s: f64,
     /// Half-width (s) of the coarse time-shift search.
@@ -98,7 +102,7 @@ impl CamImuOptions {
             intrinsics: intrinsics.to_path_buf(),
             target: target.to_path_buf(),
             frame_step: 1,
-            keyframe_step: 1,
+            keyframe_interval_s: DEFAULT_KEYFRAME_INTERVAL_S,
             time_shift_guess_s: 0.0,
             search_window_s: 0.25,
             knot_spacing_s: 0.02,
@@ -385,7 +389,11 @@ pub fn calibrate(o: &CamImuOptions) -> Result<CamImuResult> {
         })
         .collect();
     let gyro = GyroIntegral::new(&inputs.imu);
-    let keyframe_step = o.keyframe_step.max(1);
+    let keyframe_step = if o.keyframe_interval_s > 0.0 {
+        ((o.keyframe_interval_s * inputs.fps / o.frame_step.max(1) as f64).round() as usize).max(1)
+    } else {
+        1
+    };
     let mut lenses = observe::observe(
         &lens_inputs,
         &inputs.target,

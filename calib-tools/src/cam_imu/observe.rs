@@ -14,7 +14,7 @@ use kiwi_core::geometry::{Pose, hat, se3_exp, so3_log};
 use kiwi_core::imu::ImuSample;
 use kiwi_core::layout::FrameRecord;
 
-use crate::detect::{Detector, load_gray};
+use crate::detect::Detector;
 use crate::error::{CalibError, Result};
 use crate::target::AprilGridTarget;
 
@@ -157,6 +157,7 @@ pub fn observe(
                 k,
                 record.t,
                 detected_corners(&detection, lens.camera, readout_s),
+                None,
             ))
         })
         .collect();
@@ -189,19 +190,25 @@ pub fn frame_pose(
     index: usize,
     t: f64,
     mut corners: Vec<CornerObs>,
+    start: Option<&Pose>,
 ) -> Option<FrameObs> {
     if corners.len() < MIN_CORNERS_PER_FRAME {
         return None;
     }
-    let (bearings, board): (Vec<Vector3<f64>>, Vec<Vector3<f64>>) = corners
-        .iter()
-        .filter_map(|c| {
-            camera
-                .unproject(&Point2::new(c.pixel.x, c.pixel.y))
-                .map(|b| (b.into_inner(), c.board))
-        })
-        .unzip();
-    let (mut pose, _) = crate::intrinsics::init::pose_from_bearings(&bearings, &board)?;
+    let mut pose = match start {
+        Some(p) => *p,
+        None => {
+            let (bearings, board): (Vec<Vector3<f64>>, Vec<Vector3<f64>>) = corners
+                .iter()
+                .filter_map(|c| {
+                    camera
+                        .unproject(&Point2::new(c.pixel.x, c.pixel.y))
+                        .map(|b| (b.into_inner(), c.board))
+                })
+                .unzip();
+            crate::intrinsics::init::pose_from_bearings(&bearings, &board)?.0
+        }
+    };
     let total = corners.len();
     for _ in 0..2 {
         pose = refine_pose(camera, &pose, &corners)?;
@@ -554,7 +561,7 @@ pub fn track(
                 let prev2 = (n >= 2 && out[n - 2].index + step == prev.index).then(|| &out[n - 2]);
                 let predicted = predict(prev, prev2, record.t, model);
                 let corners = track_corners(&gray, lens.camera, target, &predicted, readout_s)?;
-                let mut frame = frame_pose(lens.camera, k, record.t, corners);
+                let mut frame = frame_pose(lens.camera, k, record.t, corners, Some(&predicted));
                 if frame.is_none() {
                     let d = detector.detect(&gray)?;
                     frame = frame_pose(
@@ -562,6 +569,7 @@ pub fn track(
                         k,
                         record.t,
                         detected_corners(&d, lens.camera, readout_s),
+                        None,
                     );
                 }
                 progress.inc(1);
@@ -695,4 +703,34 @@ fn track_corners(
         }
     }
     Ok(out)
+}
+
+/// Load a frame as 8-bit grey. 8-bit RGB frames (what cameras and the simulator write) are
+/// converted with integer Rec. 601 weights, several times faster than the generic colour
+/// pipeline; other formats go through [`crate::detect::load_gray`].
+pub fn load_gray(path: &Path) -> Result<image::GrayImage> {
+    let reader = image::ImageReader::open(path)
+        .and_then(image::ImageReader::with_guessed_format)
+        .map_err(|e| CalibError::Input {
+            path: path.to_path_buf(),
+            message: format!("cannot read the frame ({e}); check the file or frames.csv"),
+        })?;
+    match reader.decode() {
+        Ok(image::DynamicImage::ImageRgb8(rgb)) => {
+            let (w, h) = rgb.dimensions();
+            let data: Vec<u8> = rgb
+                .as_raw()
+                .chunks_exact(3)
+                .map(|p| {
+                    ((77 * u32::from(p[0]) + 150 * u32::from(p[1]) + 29 * u32::from(p[2]) + 128)
+                        >> 8) as u8
+                })
+                .collect();
+            image::GrayImage::from_raw(w, h, data).ok_or_else(|| {
+                CalibError::Internal(format!("{}: grey buffer size", path.display()))
+            })
+        }
+        Ok(image::DynamicImage::ImageLuma8(g)) => Ok(g),
+        _ => crate::detect::load_gray(path),
+    }
 }

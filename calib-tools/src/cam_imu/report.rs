@@ -56,10 +56,10 @@ pub struct CamImuArgs {
     /// Use every N-th frame (1 = all).
     #[arg(long, default_value_t = 1)]
     pub frame_step: usize,
-    /// Detect the board from scratch in every N-th used frame and track it (gyro-aided
-    /// prediction + sub-pixel refinement) in between; 1 detects in every frame.
-    #[arg(long, default_value_t = 1)]
-    pub keyframe_step: usize,
+    /// Detect the board from scratch in a keyframe this often (seconds) and track it in the
+    /// frames between (gyro-aided prediction + sub-pixel refinement); 0 detects in every frame.
+    #[arg(long, default_value_t = super::DEFAULT_KEYFRAME_INTERVAL_S)]
+    pub keyframe_interval: f64,
     /// Starting guess of the time shift in seconds (t_imu = t_cam + shift).
     #[arg(long, default_value_t = 0.0)]
     pub time_shift_guess: f64,
@@ -98,6 +98,12 @@ pub fn run(args: &CamImuArgs) -> Result<(CamImuResult, WrittenFiles)> {
             "--knot-spacing must be in (0.001, 0.2] s; 0.02 s suits hand-held motion",
         ));
     }
+    if !(args.keyframe_interval >= 0.0 && args.keyframe_interval <= 2.0) {
+        return Err(bad_arg(
+            &args.capture,
+            "--keyframe-interval must be in [0, 2] s (0 detects in every frame)",
+        ));
+    }
     if !(args.search_window > 0.0 && args.search_window <= 5.0) {
         return Err(bad_arg(
             &args.capture,
@@ -119,7 +125,7 @@ pub fn run(args: &CamImuArgs) -> Result<(CamImuResult, WrittenFiles)> {
     }
     let mut o = CamImuOptions::new(&args.capture, &args.intrinsics, &args.target);
     o.frame_step = args.frame_step;
-    o.keyframe_step = args.keyframe_step.max(1);
+    o.keyframe_interval_s = args.keyframe_interval;
     o.time_shift_guess_s = args.time_shift_guess;
     o.search_window_s = args.search_window;
     o.knot_spacing_s = args.knot_spacing;

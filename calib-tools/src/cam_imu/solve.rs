@@ -30,9 +30,12 @@ const LENS_DIM: usize = 7;
 /// Parameters per bias knot: gyro (3) and accelerometer (3).
 const BIAS_DIM: usize = 6;
 /// Relative cost decrease below which Levenberg–Marquardt stops.
-const COST_TOLERANCE: f64 = 1e-9;
+const COST_TOLERANCE: f64 = 1e-6;
 /// Damping above which a step is hopeless: the estimate has converged.
 const MAX_LAMBDA: f64 = 1e8;
+/// Damping increases tried per iteration: near the minimum a rejected Gauss–Newton step means
+/// the cost is flat to round-off, and more trials only cost time.
+const MAX_TRIALS: usize = 3;
 
 /// Noise model of the residuals.
 #[derive(Debug, Clone, Copy)]
@@ -272,11 +275,9 @@ fn frame_terms(
     let mut m6 = Matrix6::<f64>::zeros();
     let mut g6 = Vector6::<f64>::zeros();
     let mut cost = 0.0;
+    let motion = FrameMotion::new(&state.spline, &st, t_ref);
     for c in &frame.corners {
-        let t = frame.t + lens.time_shift_s + c.row_delay_s;
-        let Some((r, p)) = state.spline.pose(t) else {
-            continue;
-        };
+        let (r, p) = motion.at(c.row_delay_s - frame.row_delay_s);
         let pw = world_from_board * nalgebra::Point3::from(c.board);
         let pi = r.inverse() * (pw.coords - p);
         let pc = x * nalgebra::Point3::from(pi);
@@ -352,6 +353,48 @@ fn frame_terms(
     );
     normal.cost += cost;
     cost
+}
+
+/// The trajectory around a frame's reference time to second order, for the corners' rolling-
+/// shutter times (rows are read within a few milliseconds, where the third-order term is far
+/// below a hundredth of a pixel): `R(t+δ) = R exp(ωδ + ω̇δ²/2)`, `p(t+δ) = p + vδ + aδ²/2`.
+struct FrameMotion {
+    rotation: nalgebra::UnitQuaternion<f64>,
+    position: Vector3<f64>,
+    omega: Vector3<f64>,
+    omega_dot: Vector3<f64>,
+    velocity: Vector3<f64>,
+    acceleration: Vector3<f64>,
+}
+
+/// Step (s) of the angular-acceleration finite difference.
+const OMEGA_DOT_STEP_S: f64 = 1e-3;
+
+impl FrameMotion {
+    fn new(spline: &TrajectorySpline, st: &super::spline::TrajectoryState, t: f64) -> Self {
+        let omega_dot = match (
+            spline.state(t + OMEGA_DOT_STEP_S),
+            spline.state(t - OMEGA_DOT_STEP_S),
+        ) {
+            (Some(a), Some(b)) => (a.omega - b.omega) / (2.0 * OMEGA_DOT_STEP_S),
+            _ => Vector3::zeros(),
+        };
+        Self {
+            rotation: st.rotation,
+            position: st.position,
+            omega: st.omega,
+            omega_dot,
+            velocity: st.velocity,
+            acceleration: st.acceleration,
+        }
+    }
+
+    fn at(&self, d: f64) -> (nalgebra::UnitQuaternion<f64>, Vector3<f64>) {
+        (
+            self.rotation * so3_exp(&(self.omega * d + self.omega_dot * (0.5 * d * d))),
+            self.position + self.velocity * d + self.acceleration * (0.5 * d * d),
+        )
+    }
 }
 
 fn st_pose(st: &super::spline::TrajectoryState) -> Pose {
@@ -791,7 +834,9 @@ pub fn optimize(
         let layout = Layout::new(&state);
         let normal = build(problem, &state, &layout);
         let mut improved = false;
-        while lambda < MAX_LAMBDA {
+        let mut trials = 0;
+        while lambda < MAX_LAMBDA && trials < MAX_TRIALS {
+            trials += 1;
             let Some((ds, dg)) = solve_step(&normal, lambda) else {
                 lambda *= 10.0;
                 continue;
@@ -842,11 +887,13 @@ pub fn corner_residuals(
     for (l, obs) in problem.lenses.iter().enumerate() {
         let lens = &state.lenses[l];
         for f in &obs.frames {
+            let t_ref = f.t + lens.time_shift_s + f.row_delay_s;
+            let Some(st) = state.spline.state(t_ref) else {
+                continue;
+            };
+            let motion = FrameMotion::new(&state.spline, &st, t_ref);
             for c in &f.corners {
-                let t = f.t + lens.time_shift_s + c.row_delay_s;
-                let Some((r, p)) = state.spline.pose(t) else {
-                    continue;
-                };
+                let (r, p) = motion.at(c.row_delay_s - f.row_delay_s);
                 let pw = state.world_from_board[l] * nalgebra::Point3::from(c.board);
                 let pi = r.inverse() * (pw.coords - p);
                 let pc = lens.cam_from_imu * nalgebra::Point3::from(pi);
