@@ -5,6 +5,7 @@ use std::path::PathBuf;
 use anyhow::Result;
 use clap::{Parser, Subcommand};
 
+mod gripper_cli;
 mod vision_cli;
 
 /// Reconstruct KIWI episodes: audio sync, fisheye maps, metric recovery, localization, IMU
@@ -105,6 +106,9 @@ enum Command {
     /// Localize every frame of one lens of an episode against a frozen map and write
     /// poses.csv (`map_from_cam`; status tracked, relocalized or lost).
     Localize(vision_cli::LocalizeArgs),
+    /// Gripper opening per front-lens frame (chopstick angle in deg, parallel-jaw gap in px):
+    /// opening.csv (`t,opening,unit,confidence,status`), opening.svg, tool.json.
+    Gripper(gripper_cli::GripperArgs),
     /// Check a session: session.toml, unit calibrations and every prepared episode's files.
     Inspect {
         /// The session's session.toml.
@@ -333,6 +337,7 @@ fn main() -> Result<()> {
         }
         Command::Map(args) => vision_cli::run_map(&args)?,
         Command::Localize(args) => vision_cli::run_localize(&args)?,
+        Command::Gripper(args) => gripper_cli::run_gripper(&args)?,
         Command::Inspect { session, json } => {
             let report = kiwi_backend::inspect::inspect_session(&session)?;
             if json {

@@ -344,7 +344,7 @@ pub struct Measurement {
 }
 
 impl Measurement {
-    fn missing(unit: OpeningUnit, reason: String) -> Self {
+    fn missing(unit: OpeningUnit, reason: &str) -> Self {
         Self {
             opening: None,
             unit,
@@ -363,6 +363,9 @@ pub struct GripperEstimator {
     /// Distance of each dot slot from the hinge along the jaw (m).
     slots: Vec<f64>,
 }
+
+/// The dot chosen for a slot: how far its area is from a dot's, and its plane position.
+type SlotPick = (f64, [f64; 2]);
 
 /// A line through the dots of one jaw: `direction` (unit) through `point`.
 #[derive(Debug, Clone, Copy)]
@@ -460,7 +463,7 @@ impl GripperEstimator {
         if image.width != self.rect.src.0 || image.height != self.rect.src.1 {
             return Measurement::missing(
                 unit,
-                format!(
+                &format!(
                     "frame is {}x{} but the lens calibration is {}x{}",
                     image.width, image.height, self.rect.src.0, self.rect.src.1
                 ),
@@ -469,7 +472,7 @@ impl GripperEstimator {
         if self.rect.visible < MIN_VISIBLE {
             return Measurement::missing(
                 unit,
-                format!(
+                &format!(
                     "jaws out of view: {:.0} % of the dot plane is imaged",
                     100.0 * self.rect.visible
                 ),
@@ -497,7 +500,7 @@ impl GripperEstimator {
     /// Split dots per jaw by side of the centre line, at most one per slot and jaw.
     fn per_jaw(&self, dots: &[Dot], along: impl Fn(&Dot) -> f64) -> [Vec<[f64; 2]>; 2] {
         let n = self.slots.len();
-        let mut best: [Vec<Option<(f64, [f64; 2])>>; 2] = [vec![None; n], vec![None; n]];
+        let mut best: [Vec<Option<SlotPick>>; 2] = [vec![None; n], vec![None; n]];
         let expected =
             std::f64::consts::PI * (self.def.dots.radius_m * self.rect.plane.px_per_m).powi(2);
         for d in dots {
@@ -530,7 +533,7 @@ impl GripperEstimator {
         let (Some(a), Some(b)) = (lines[0], lines[1]) else {
             return Measurement::missing(
                 unit,
-                format!(
+                &format!(
                     "jaw dots not found ({} and {} of {} per jaw, need {MIN_DOTS_PER_JAW})",
                     jaws[0].len(),
                     jaws[1].len(),
@@ -561,7 +564,7 @@ impl GripperEstimator {
         let (Some(a), Some(b)) = (lines[0], lines[1]) else {
             return Measurement::missing(
                 unit,
-                format!(
+                &format!(
                     "plate dots not found ({} and {} of {} per plate, need {MIN_DOTS_PER_JAW})",
                     jaws[0].len(),
                     jaws[1].len(),
