@@ -46,6 +46,7 @@ bench: deps
 	cargo bench -p kiwi-backend --bench sync
 	cargo bench -p kiwi-calib --bench intrinsics
 	cargo bench -p kiwi-calib --bench imu_noise
+	cargo bench -p kiwi-calib --bench cam_imu
 	cargo bench -p kiwi-backend --bench fuse
 	cargo bench -p kiwi-backend --bench vision
 
