@@ -249,7 +249,7 @@ pub fn build_map(
         let img = stream.load(kf.frame as usize)?;
         features.push(orb.extract(&img, Some(&stream.mask), &stream.camera)?);
     }
-    let mut map = VisualMap::from_reconstruction_described(
+    let map = VisualMap::from_reconstruction_described(
         &recon,
         &features,
         tracker.track_descriptors(),
@@ -258,7 +258,6 @@ pub fn build_map(
         &stream.episode_name(),
         &stream.camera,
     )?;
-    map.train_vocabulary();
     let summary = MapSummary {
         frames: n,
         frames_tracked: recon.frame_poses.len(),

@@ -447,7 +447,8 @@ impl VisualMap {
         )
     }
 
-    /// [`VisualMap::from_reconstruction`], and in addition every keyframe observation of a
+    /// [`VisualMap::from_reconstruction`] (which also learns the place-recognition vocabulary),
+    /// and in addition every keyframe observation of a
     /// mapped track that no keyframe keypoint lands on becomes a feature of that keyframe with
     /// the track's descriptor from `track_descriptors` (taken where the front-end detected the
     /// track), so that far more landmarks are described and matchable.
@@ -570,6 +571,7 @@ impl VisualMap {
                 features,
             });
         }
+        map.train_vocabulary();
         Ok(map)
     }
 }
