@@ -606,7 +606,13 @@ pub fn calibrate(o: &CamImuOptions) -> Result<CamImuResult> {
             imu: &imu_in,
             weights,
         };
-        solve::optimize(&problem, state, o.max_iterations, &progress("batch 1"))
+        solve::optimize(
+            &problem,
+            state,
+            o.max_iterations,
+            false,
+            &progress("batch 1"),
+        )
     };
     state = s1;
     let mut rejected = vec![0usize; lenses.len()];
@@ -656,7 +662,13 @@ pub fn calibrate(o: &CamImuOptions) -> Result<CamImuResult> {
         imu: &imu_in,
         weights,
     };
-    let (state, sum2) = solve::optimize(&problem, state, o.max_iterations, &progress("batch 2"));
+    let (state, sum2) = solve::optimize(
+        &problem,
+        state,
+        o.max_iterations,
+        true,
+        &progress("batch 2"),
+    );
     let batch_s = t_batch.elapsed().as_secs_f64();
 
     // Uncertainties: inverse Hessian scaled by the residual variance factor.
@@ -755,7 +767,7 @@ pub fn calibrate(o: &CamImuOptions) -> Result<CamImuResult> {
         let v = s.values.iter().fold(Vector3::zeros(), |a, b| a + b) / s.values.len() as f64;
         [v.x, v.y, v.z]
     };
-    let rms = |f: &dyn Fn(&(f64, Vector3<f64>, Vector3<f64>)) -> f64| {
+    let rms = |f: &dyn Fn(&ImuResidual) -> f64| {
         (imu_res.iter().map(|r| f(r).powi(2)).sum::<f64>() / imu_res.len().max(1) as f64).sqrt()
             / 3f64.sqrt()
     };
@@ -838,17 +850,17 @@ fn coarse_align(
             ),
         ));
     }
-    let shift = observe::coarse_time_shift(&rates, &gyro, o.time_shift_guess_s, o.search_window_s)
+    let shift = observe::coarse_time_shift(&rates, gyro, o.time_shift_guess_s, o.search_window_s)
         .ok_or_else(|| {
-            input(
-                &capture.join("imu.csv"),
-                format!(
-                    "the IMU log does not overlap the {} lens's frames for any time shift within \
+        input(
+            &capture.join("imu.csv"),
+            format!(
+                "the IMU log does not overlap the {} lens's frames for any time shift within \
                  {} ± {} s; check imu.csv is on the camera clock (t in s)",
-                    l.name, o.time_shift_guess_s, o.search_window_s
-                ),
-            )
-        })?;
+                l.name, o.time_shift_guess_s, o.search_window_s
+            ),
+        )
+    })?;
     if shift.correlation < observe::MIN_CORRELATION {
         return Err(input(
             &capture.join("imu.csv"),
@@ -866,7 +878,7 @@ fn coarse_align(
             ),
         ));
     }
-    let (rotation, bias) = observe::align_rates(&rates, &gyro, shift.shift_s)
+    let (rotation, bias) = observe::align_rates(&rates, gyro, shift.shift_s)
         .ok_or_else(|| input(capture, "too few angular-rate pairs to align".into()))?;
     tracing::info!(
         "{}: coarse time shift {:.2} ms (correlation {:.3}), rotation {:.2} deg",
@@ -877,6 +889,9 @@ fn coarse_align(
     );
     Ok((shift, rotation, bias, rms))
 }
+
+/// One IMU residual: time, gyro (rad/s) and accelerometer (m/s²) residual.
+type ImuResidual = (f64, Vector3<f64>, Vector3<f64>);
 
 /// The 6 × 6 covariance block between lens `a`'s and lens `b`'s `cam_from_imu`, scaled.
 fn lens_covariance(

@@ -242,7 +242,7 @@ pub fn frame_pose(
         .map(|c| pixel_error(camera, &pose, c).map_or(f64::INFINITY, |e| e * e))
         .sum();
     let rms_px = (sq / corners.len() as f64).sqrt();
-    if !(rms_px <= MAX_FRAME_RMS_PX) {
+    if rms_px.is_nan() || rms_px > MAX_FRAME_RMS_PX {
         return None;
     }
     let row_delay_s = corners.iter().map(|c| c.row_delay_s).sum::<f64>() / corners.len() as f64;
@@ -732,5 +732,64 @@ pub fn load_gray(path: &Path) -> Result<image::GrayImage> {
         }
         Ok(image::DynamicImage::ImageLuma8(g)) => Ok(g),
         _ => crate::detect::load_gray(path),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn omega(t: f64) -> Vector3<f64> {
+        Vector3::new(
+            1.5 * (2.1 * t).sin() + 0.4 * (7.3 * t).cos(),
+            0.8 * (3.7 * t + 1.0).sin(),
+            1.1 * (5.2 * t + 0.3).sin() * (0.9 * t).cos(),
+        )
+    }
+
+    #[test]
+    fn coarse_shift_and_rotation_recovered_from_rates() {
+        // t_imu = t_cam + shift: the camera sees at t what the gyro logs at t + shift.
+        let shift = 0.037;
+        let cam_from_imu = kiwi_core::geometry::so3_exp(&Vector3::new(0.3, -1.2, 2.0));
+        let bias = Vector3::new(0.01, -0.02, 0.005);
+        let gyro: Vec<ImuSample> = (0..20_000)
+            .map(|i| {
+                let t = i as f64 * 1e-3;
+                ImuSample::new(t, omega(t - shift) + bias, Vector3::zeros())
+            })
+            .collect();
+        let integral = GyroIntegral::new(&gyro);
+        let rates: Vec<RateSample> = (0..1000)
+            .map(|k| {
+                let (t0, t1) = (1.0 + k as f64 / 60.0, 1.0 + (k + 1) as f64 / 60.0);
+                RateSample {
+                    t0,
+                    t1,
+                    omega: cam_from_imu * omega(0.5 * (t0 + t1)),
+                }
+            })
+            .collect();
+        let c = coarse_time_shift(&rates, &integral, 0.0, 0.2).unwrap();
+        assert!((c.shift_s - shift).abs() < 5e-4, "{c:?}");
+        assert!(c.correlation > 0.99);
+        let (r, b) = align_rates(&rates, &integral, c.shift_s).unwrap();
+        assert!(
+            r.angle_to(&cam_from_imu) < 2e-3,
+            "{}",
+            r.angle_to(&cam_from_imu)
+        );
+        assert!((b - bias).norm() < 2e-3, "{b}");
+        let (rms, share) = excitation(&rates);
+        assert!(rms > 1.0 && share > 0.05);
+        // Rotation about one axis only is not enough.
+        let flat: Vec<RateSample> = rates
+            .iter()
+            .map(|r| RateSample {
+                omega: Vector3::new(r.omega.norm(), 0.0, 0.0),
+                ..*r
+            })
+            .collect();
+        assert!(excitation(&flat).1 < MIN_AXIS_SHARE);
     }
 }

@@ -98,7 +98,7 @@ pub fn run(args: &CamImuArgs) -> Result<(CamImuResult, WrittenFiles)> {
             "--knot-spacing must be in (0.001, 0.2] s; 0.02 s suits hand-held motion",
         ));
     }
-    if !(args.keyframe_interval >= 0.0 && args.keyframe_interval <= 2.0) {
+    if !(0.0..=2.0).contains(&args.keyframe_interval) {
         return Err(bad_arg(
             &args.capture,
             "--keyframe-interval must be in [0, 2] s (0 detects in every frame)",

@@ -602,7 +602,7 @@ fn band_cholesky(band: &mut [f64], n: usize) -> bool {
                 s -= band[i * BAND + (i - k)] * band[j * BAND + (j - k)];
             }
             if i == j {
-                if !(s > 0.0) {
+                if s.is_nan() || s <= 0.0 {
                     return false;
                 }
                 band[i * BAND] = s.sqrt();
@@ -823,6 +823,7 @@ pub fn optimize(
     problem: &Problem<'_>,
     mut state: State,
     max_iterations: usize,
+    with_covariance: bool,
     on_iteration: &dyn Fn(usize, f64),
 ) -> (State, SolveSummary) {
     let mut current = cost(problem, &state);
@@ -859,13 +860,16 @@ pub fn optimize(
         }
     }
     let layout = Layout::new(&state);
-    let normal = build(problem, &state, &layout);
-    let covariance = reduce(&normal, 0.0).and_then(|red| {
-        let ng = layout.ng;
-        let mut s = red.schur;
-        let mut id = Mat::<f64>::identity(ng, ng);
-        dense_solve(&mut s, &mut id).then_some(id)
-    });
+    let covariance = with_covariance.then(|| build(problem, &state, &layout));
+    let covariance = covariance
+        .as_ref()
+        .and_then(|normal| reduce(normal, 0.0))
+        .and_then(|red| {
+            let ng = layout.ng;
+            let mut s = red.schur;
+            let mut id = Mat::<f64>::identity(ng, ng);
+            dense_solve(&mut s, &mut id).then_some(id)
+        });
     (
         state,
         SolveSummary {
