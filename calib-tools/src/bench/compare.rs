@@ -14,9 +14,12 @@ use crate::plot::{Figure, Series, Style};
 
 /// Grid step of the coarse cross-correlation (s); the refinement goes below it.
 const GRID_S: f64 = 0.001;
-/// Half-width of the fine offset search around the correlation peak (s).
-const REFINE_HALF_S: f64 = 0.004;
-/// Step of the fine offset search (s).
+/// Half-width of the residual search around the correlation peak (s): the raw-sum peak can
+/// sit several ms off on a short recording (its overlap term), so search wide, then fine.
+const REFINE_HALF_S: f64 = 0.03;
+/// Step of the wide residual search (s).
+const REFINE_COARSE_STEP_S: f64 = 0.000_5;
+/// Step of the fine search, within one wide step either side of the wide minimum (s).
 const REFINE_STEP_S: f64 = 0.000_05;
 /// Encoder samples further apart than this many median periods are a gap (no interpolation).
 const GAP_PERIODS: f64 = 3.0;
@@ -457,20 +460,25 @@ pub fn compare(
         }
         (t, x, y)
     };
-    let steps = (REFINE_HALF_S / REFINE_STEP_S).round() as i64;
-    let mut best: Option<(f64, f64)> = None;
-    for k in -steps..=steps {
-        let off = coarse + k as f64 * REFINE_STEP_S;
-        let (_, x, y) = matched(off);
-        if x.len() < MIN_MATCHED {
-            continue;
+    let scan = |centre: f64, half: f64, step: f64| -> Option<(f64, f64)> {
+        let steps = (half / step).round() as i64;
+        let mut best: Option<(f64, f64)> = None;
+        for k in -steps..=steps {
+            let off = centre + k as f64 * step;
+            let (_, x, y) = matched(off);
+            if x.len() < MIN_MATCHED {
+                continue;
+            }
+            if let Some((_, _, rms)) = linear_fit(&x, &y)
+                && best.is_none_or(|(r, _)| rms < r)
+            {
+                best = Some((rms, off));
+            }
         }
-        if let Some((_, _, rms)) = linear_fit(&x, &y)
-            && best.is_none_or(|(r, _)| rms < r)
-        {
-            best = Some((rms, off));
-        }
-    }
+        best
+    };
+    let best = scan(coarse, REFINE_HALF_S, REFINE_COARSE_STEP_S)
+        .and_then(|(_, wide)| scan(wide, REFINE_COARSE_STEP_S, REFINE_STEP_S));
     let (_, offset_s) = best.ok_or_else(|| BenchError::Setting {
         name: "recordings",
         detail: format!(
