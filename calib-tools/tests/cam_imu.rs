@@ -1,9 +1,9 @@
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 //! Acceptance of `kiwi-calib cam-imu` on a simulated X5 unit: a camera–IMU excitation between two
-//! aprilgrids (front and rear lens, 120 Hz rolling-shutter frames at 400 × 400, 1 kHz IMU with
+//! aprilgrids (front and rear lens, 120 Hz rolling-shutter frames at 480 × 480, 1 kHz IMU with
 //! the unit's noise, biases and bias random walk), started from a time shift 50 ms wrong.
 //! Tolerances of issue #5: rotation < 0.1°, translation < 2 mm, time shift < 0.2 ms per lens.
-//! The full 60 s case runs in `benches/cam_imu.rs`; this test uses 3.5 s to stay fast.
+//! The full 60 s case runs in `benches/cam_imu.rs`; this test uses 4 s to stay fast.
 
 use std::path::{Path, PathBuf};
 
@@ -11,8 +11,8 @@ use kiwi_calib::cam_imu::report::{CamImuArgs, run, summary_json};
 use kiwi_core::artifact::UnitCalibration;
 use kiwi_fixtures::captures::{UnitCaptureOptions, write_unit_captures};
 
-const RESOLUTION: u32 = 400;
-const DURATION_S: f64 = 3.5;
+const RESOLUTION: u32 = 480;
+const DURATION_S: f64 = 4.0;
 const WRONG_BY_S: f64 = 0.05;
 
 fn capture(dir: &Path) -> PathBuf {
