@@ -600,23 +600,24 @@ pub fn plot_cycle(cmp: &Comparison, aligned: &Aligned, path: &Path) -> Result<()
         900,
         500,
         &format!(
-            "jaw opening: vision vs encoder (rmse {:.3} {unit}, n {})",
+            "vision vs encoder: rmse {:.3} {unit}, n {}",
             cmp.rmse, cmp.n
         ),
         "time in cycle (s)",
         &format!("opening ({unit})"),
     );
-    fig.series.push(Series {
-        name: "encoder".into(),
-        color: [30, 30, 30],
-        style: Style::Line(2),
-        points: window(&aligned.encoder),
-    });
+    // As in the paper's figure: vision in blue, the encoder in orange on top.
     fig.series.push(Series {
         name: "vision".into(),
-        color: [205, 30, 35],
-        style: Style::Markers(4),
+        color: [31, 95, 191],
+        style: Style::Markers(3),
         points: window(&aligned.vision),
+    });
+    fig.series.push(Series {
+        name: "encoder".into(),
+        color: [235, 125, 20],
+        style: Style::Line(2),
+        points: window(&aligned.encoder),
     });
     fig.save_png(path)
         .map_err(|e| file_err(path, e.to_string()))
