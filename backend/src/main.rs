@@ -6,6 +6,7 @@ use anyhow::Result;
 use clap::{Parser, Subcommand};
 
 mod gripper_cli;
+mod metric_cli;
 mod vision_cli;
 
 /// Reconstruct KIWI episodes: audio sync, fisheye maps, metric recovery, localization, IMU
@@ -100,6 +101,12 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Make a visual map metric and z-up: scale, gravity and IMU biases from the mapping
+    /// episode's localizations and IMU (visual-inertial graph); writes metric.json.
+    Metric(metric_cli::MetricArgs),
+    /// Place the front map in the scene (rear) map from synchronized front and rear
+    /// localizations of the mapping episode (paper eq. 2); writes placement.json.
+    Place(metric_cli::PlaceArgs),
     /// Build a visual map (.kmap) from one lens of a mapping episode: KLT/ORB tracks,
     /// incremental mapping with bundle adjustment, keyframe descriptors, place recognition.
     Map(vision_cli::MapArgs),
@@ -289,25 +296,12 @@ fn main() -> Result<()> {
                 config.huber_k = (k > 0.0).then_some(k);
             }
             config.visual_rate_hz = visual_rate;
-            let imu_noise = match imu_noise {
-                Some(s) => {
-                    let v: Vec<f64> = s
-                        .split(',')
-                        .map(|v| v.trim().parse::<f64>())
-                        .collect::<std::result::Result<_, _>>()
-                        .map_err(|_| {
-                            anyhow::anyhow!("--imu-noise {s}: expected four numbers GN,GW,AN,AW")
-                        })?;
-                    let [a, b, c, d] = v[..] else {
-                        anyhow::bail!("--imu-noise {s}: expected four numbers GN,GW,AN,AW");
-                    };
-                    if v.iter().any(|x| !(*x > 0.0 && x.is_finite())) {
-                        anyhow::bail!("--imu-noise {s}: densities must be positive (SI units)");
-                    }
-                    Some([a, b, c, d])
-                }
-                None => None,
-            };
+            let imu_noise = imu_noise
+                .as_deref()
+                .map(|s| {
+                    metric_cli::positive_numbers::<4>("--imu-noise", s, "four numbers GN,GW,AN,AW")
+                })
+                .transpose()?;
             let summary = kiwi_backend::estimate::files::run_fuse(
                 &kiwi_backend::estimate::files::FuseOptions {
                     imu,
@@ -335,6 +329,8 @@ fn main() -> Result<()> {
                 );
             }
         }
+        Command::Metric(args) => metric_cli::run_metric_cmd(&args)?,
+        Command::Place(args) => metric_cli::run_place_cmd(&args)?,
         Command::Map(args) => vision_cli::run_map(&args)?,
         Command::Localize(args) => vision_cli::run_localize(&args)?,
         Command::Gripper(args) => gripper_cli::run_gripper(&args)?,

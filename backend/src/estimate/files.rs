@@ -175,6 +175,123 @@ pub fn read_observations(path: &Path) -> Result<Vec<PoseObservation>> {
     Ok(out)
 }
 
+/// Columns of a localizer's `poses.csv` that `kiwi metric` and `kiwi place` read (by name; other
+/// columns such as `inliers` and `reason` are ignored).
+const LOCALIZATION_COLUMNS: [&str; 9] = ["t", "status", "px", "py", "pz", "qx", "qy", "qz", "qw"];
+
+/// One row of a localizer's `poses.csv` (`map_from_cam` on the camera clock).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Localization {
+    /// Frame time on the camera clock (s).
+    pub t: f64,
+    /// `tracked` or `relocalized` (a pose was accepted); `lost` rows are `false`.
+    pub valid: bool,
+    /// `map_from_cam` (identity for lost rows).
+    pub map_from_cam: Pose,
+}
+
+/// Read `poses.csv` (`t,status,px,py,pz,qx,qy,qz,qw,...`, status ∈ {tracked, relocalized,
+/// lost}); lost rows may leave the pose empty.
+pub fn read_localizations(path: &Path) -> Result<Vec<Localization>> {
+    let text = read(path)?;
+    let mut lines = text
+        .lines()
+        .enumerate()
+        .filter(|(_, l)| !l.trim().is_empty());
+    let header: Vec<String> = lines
+        .next()
+        .map(|(_, l)| l.split(',').map(|c| c.trim().to_string()).collect())
+        .unwrap_or_default();
+    let mut index = [0usize; 9];
+    for (slot, name) in index.iter_mut().zip(LOCALIZATION_COLUMNS) {
+        *slot = header.iter().position(|c| c == name).ok_or_else(|| {
+            input(
+                path,
+                format!(
+                    "missing column `{name}`: expected a localizer poses.csv with columns {} \
+                     (found `{}`)",
+                    LOCALIZATION_COLUMNS.join(","),
+                    header.join(",")
+                ),
+            )
+        })?;
+    }
+    let mut out: Vec<Localization> = Vec::new();
+    for (i, line) in lines {
+        let row = i + 1;
+        let fields: Vec<&str> = line.split(',').map(str::trim).collect();
+        let field = |k: usize| fields.get(index[k]).copied().unwrap_or("");
+        let number = |k: usize| -> Result<f64> {
+            field(k)
+                .parse()
+                .ok()
+                .filter(|x: &f64| x.is_finite())
+                .ok_or_else(|| {
+                    input(
+                        path,
+                        format!(
+                            "line {row}: `{}` is not a finite number: `{}`",
+                            LOCALIZATION_COLUMNS[k],
+                            field(k)
+                        ),
+                    )
+                })
+        };
+        let t = number(0)?;
+        if let Some(prev) = out.last()
+            && t <= prev.t
+        {
+            return Err(input(
+                path,
+                format!("line {row}: time {t} does not increase after {}", prev.t),
+            ));
+        }
+        let valid = match field(1) {
+            "tracked" | "relocalized" => true,
+            "lost" => false,
+            other => {
+                return Err(input(
+                    path,
+                    format!(
+                        "line {row}: status must be tracked, relocalized or lost, found `{other}`"
+                    ),
+                ));
+            }
+        };
+        let map_from_cam = if valid {
+            let mut v = [0.0; 7];
+            for (k, slot) in v.iter_mut().enumerate() {
+                *slot = number(2 + k)?;
+            }
+            let q = Quaternion::new(v[6], v[3], v[4], v[5]);
+            if (q.norm() - 1.0).abs() > QUATERNION_NORM_TOLERANCE {
+                return Err(input(
+                    path,
+                    format!(
+                        "line {row}: quaternion (qx,qy,qz,qw) has norm {:.6}, expected 1",
+                        q.norm()
+                    ),
+                ));
+            }
+            Isometry3::from_parts(
+                Translation3::new(v[0], v[1], v[2]),
+                UnitQuaternion::from_quaternion(q),
+            )
+        } else {
+            Pose::identity()
+        };
+        out.push(Localization {
+            t,
+            valid,
+            map_from_cam,
+        });
+    }
+    if out.is_empty() {
+        return Err(input(path, "no rows after the header".into()));
+    }
+    Ok(out)
+}
+
 /// One row of `traj.csv`.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct TrajectoryRow {
@@ -255,55 +372,83 @@ pub struct FuseSummary {
     pub seconds: f64,
 }
 
-/// Run `kiwi fuse`.
-pub fn run_fuse(opts: &FuseOptions) -> Result<FuseSummary> {
-    let start = std::time::Instant::now();
-    let mut time_shift = 0.0;
-    let mut cam_from_imu = None;
-    let mut noise = opts.imu_noise;
-    if let Some(path) = &opts.calibration {
-        let cal = UnitCalibration::load(path)?;
-        let lens = cal.lens(&opts.lens).ok_or_else(|| {
-            let names: Vec<&str> = cal.lenses.iter().map(|l| l.name.as_str()).collect();
-            input(
-                path,
-                format!(
-                    "no lens `{}`; the unit has {names:?}; pass --lens",
-                    opts.lens
-                ),
-            )
-        })?;
-        cam_from_imu = Some(lens.cam_from_imu().ok_or_else(|| {
-            input(
-                path,
-                format!(
-                    "lens `{}` has no cam_from_imu; run the camera-IMU calibration first",
-                    opts.lens
-                ),
-            )
-        })?);
-        time_shift = lens.time_shift_s.unwrap_or(0.0);
-        if noise.is_none() {
-            let imu = cal.imu.as_ref().ok_or_else(|| {
-                input(
-                    path,
-                    "no `imu` noise block; calibrate the IMU or pass --imu-noise".into(),
-                )
-            })?;
-            noise = Some([
+/// What the estimators need of one lens of a unit artifact.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LensImuCalibration {
+    /// The lens's `cam_from_imu`.
+    pub cam_from_imu: Pose,
+    /// Kalibr time shift: `t_imu = t_cam + time_shift_s`.
+    pub time_shift_s: f64,
+    /// IMU noise densities `[gn, gw, an, aw]`, when the artifact has an `imu` block.
+    pub imu_noise: Option<[f64; 4]>,
+}
+
+/// Load `lens`'s camera–IMU calibration and the IMU noise from a unit `calibration.json`.
+pub fn load_lens_calibration(path: &Path, lens: &str) -> Result<LensImuCalibration> {
+    let cal = UnitCalibration::load(path)?;
+    let entry = cal.lens(lens).ok_or_else(|| {
+        let names: Vec<&str> = cal.lenses.iter().map(|l| l.name.as_str()).collect();
+        input(
+            path,
+            format!("no lens `{lens}`; the unit has {names:?}; pass --lens"),
+        )
+    })?;
+    let cam_from_imu = entry.cam_from_imu().ok_or_else(|| {
+        input(
+            path,
+            format!("lens `{lens}` has no cam_from_imu; run the camera-IMU calibration first"),
+        )
+    })?;
+    Ok(LensImuCalibration {
+        cam_from_imu,
+        time_shift_s: entry.time_shift_s.unwrap_or(0.0),
+        imu_noise: cal.imu.as_ref().map(|imu| {
+            [
                 imu.gyroscope_noise_density,
                 imu.gyroscope_random_walk,
                 imu.accelerometer_noise_density,
                 imu.accelerometer_random_walk,
-            ]);
+            ]
+        }),
+    })
+}
+
+/// IMU parameters from explicit densities, else the calibration's, else an error naming both.
+pub fn imu_params(
+    explicit: Option<[f64; 4]>,
+    calibration: Option<(&Path, &LensImuCalibration)>,
+) -> Result<ImuParams> {
+    let noise = match (explicit, calibration) {
+        (Some(n), _) => n,
+        (None, Some((path, cal))) => cal.imu_noise.ok_or_else(|| {
+            input(
+                path,
+                "no `imu` noise block; calibrate the IMU (kiwi-calib imu-noise) or pass \
+                 --imu-noise"
+                    .into(),
+            )
+        })?,
+        (None, None) => {
+            return Err(BackendError::Estimation(
+                "without --calibration, give the IMU noise as --imu-noise GN,GW,AN,AW".into(),
+            ));
         }
-    }
-    let [gn, gw, an, aw] = noise.ok_or_else(|| {
-        BackendError::Estimation(
-            "without --calibration, give the IMU noise as --imu-noise GN,GW,AN,AW".into(),
-        )
-    })?;
-    let params = ImuParams::from_densities(gn, gw, an, aw, GRAVITY_M_S2);
+    };
+    let [gn, gw, an, aw] = noise;
+    Ok(ImuParams::from_densities(gn, gw, an, aw, GRAVITY_M_S2))
+}
+
+/// Run `kiwi fuse`.
+pub fn run_fuse(opts: &FuseOptions) -> Result<FuseSummary> {
+    let start = std::time::Instant::now();
+    let lens_cal = opts
+        .calibration
+        .as_deref()
+        .map(|path| load_lens_calibration(path, &opts.lens).map(|c| (path, c)))
+        .transpose()?;
+    let time_shift = lens_cal.as_ref().map_or(0.0, |(_, c)| c.time_shift_s);
+    let cam_from_imu = lens_cal.as_ref().map(|(_, c)| c.cam_from_imu);
+    let params = imu_params(opts.imu_noise, lens_cal.as_ref().map(|(p, c)| (*p, c)))?;
     let imu = ImuSeries::read_csv(&opts.imu)?;
     let frames = read_frames(&opts.frames)?;
     let observations = read_observations(&opts.observations)?;

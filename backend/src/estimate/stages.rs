@@ -1,0 +1,367 @@
+//! Drivers of `kiwi metric` and `kiwi place`: read localizer `poses.csv` files, the IMU log and
+//! the unit artifact, run [`super::metric`] / [`super::placement`], and write `metric.json` /
+//! `placement.json` atomically.
+//!
+//! `metric.json` holds `world_from_map` (the similarity that makes the map metric and z-up), the
+//! scale, gravity in the map, the biases and how well the recording determined them;
+//! `kiwi place` can read it to make either map metric before placing the front map in the scene.
+
+use std::path::{Path, PathBuf};
+
+use kiwi_core::geometry::Pose;
+use kiwi_core::imu::ImuSeries;
+use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion, Vector3};
+use serde::{Deserialize, Serialize};
+
+use super::files::{Localization, imu_params, load_lens_calibration, read_localizations};
+use super::metric::{Conditioning, MapFrame, MetricConfig, recover_metric};
+use super::placement::{PlacementConfig, PlacementPair, place};
+use crate::error::{BackendError, Result};
+use crate::vision::align::Sim3;
+
+/// Schema of `metric.json` and `placement.json`.
+pub const SCHEMA_VERSION: u32 = 1;
+/// Front and rear frames of one X5 closer than this (on the IMU clock) are one pair: both lenses
+/// expose together, so they differ only by the per-lens time shifts (well under a millisecond).
+const MAX_PAIR_DT_S: f64 = 2e-3;
+
+fn input(path: &Path, message: String) -> BackendError {
+    BackendError::Input {
+        path: path.to_path_buf(),
+        message,
+    }
+}
+
+/// A similarity `x ↦ s R x + t` as stored in JSON.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct SimilarityJson {
+    /// Scale (metres per map unit).
+    pub scale: f64,
+    /// Rotation quaternion `[qx, qy, qz, qw]`.
+    pub rotation_xyzw: [f64; 4],
+    /// Translation (m).
+    pub translation_m: [f64; 3],
+}
+
+impl SimilarityJson {
+    fn from_sim3(s: &Sim3) -> Self {
+        let q = s.rotation.quaternion();
+        Self {
+            scale: s.scale,
+            rotation_xyzw: [q.i, q.j, q.k, q.w],
+            translation_m: [s.translation.x, s.translation.y, s.translation.z],
+        }
+    }
+
+    fn to_sim3(self, path: &Path) -> Result<Sim3> {
+        let [x, y, z, w] = self.rotation_xyzw;
+        let q = Quaternion::new(w, x, y, z);
+        let finite = self.scale.is_finite()
+            && self.rotation_xyzw.iter().all(|v| v.is_finite())
+            && self.translation_m.iter().all(|v| v.is_finite());
+        if !finite || self.scale <= 0.0 || (q.norm() - 1.0).abs() > 1e-6 {
+            return Err(input(
+                path,
+                "world_from_map: expected a positive finite scale and a unit quaternion; \
+                 re-run kiwi metric"
+                    .into(),
+            ));
+        }
+        Ok(Sim3 {
+            scale: self.scale,
+            rotation: UnitQuaternion::from_quaternion(q),
+            translation: Vector3::from(self.translation_m),
+        })
+    }
+}
+
+/// Contents of `metric.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct MetricFile {
+    /// [`SCHEMA_VERSION`].
+    pub schema_version: u32,
+    /// Lens whose localizations were used.
+    pub lens: String,
+    /// `world_from_map`: metric, gravity along −z.
+    pub world_from_map: SimilarityJson,
+    /// Metres per map unit.
+    pub scale_m_per_map_unit: f64,
+    /// Unit gravity direction in map coordinates.
+    pub gravity_in_map: [f64; 3],
+    /// Accelerometer bias at mid-recording (m/s²).
+    pub accel_bias_m_s2: [f64; 3],
+    /// Its 1-σ (m/s²).
+    pub accel_bias_sigma_m_s2: [f64; 3],
+    /// Gyroscope bias at mid-recording (rad/s).
+    pub gyro_bias_rad_s: [f64; 3],
+    /// How well the recording determined scale and gravity.
+    pub conditioning: ConditioningJson,
+    /// Valid localizations used.
+    pub frames_used: usize,
+    /// Rows reported lost (not used).
+    pub frames_lost: usize,
+    /// Localizations down-weighted as outliers.
+    pub outliers_downweighted: usize,
+    /// RMS visual position residual of the inliers (m).
+    pub rms_position_m: f64,
+    /// RMS visual rotation residual of the inliers (deg).
+    pub rms_rotation_deg: f64,
+    /// Solver iterations.
+    pub iterations: usize,
+    /// Wall time (s).
+    pub seconds: f64,
+}
+
+/// [`Conditioning`] in JSON units.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct ConditioningJson {
+    /// RMS world acceleration (m/s²).
+    pub excitation_rms_m_s2: f64,
+    /// 1-σ relative scale uncertainty (fraction).
+    pub scale_sigma: f64,
+    /// 1-σ gravity-direction uncertainty (deg).
+    pub gravity_sigma_deg: f64,
+    /// Posterior variance factor applied to the sigmas.
+    pub variance_factor: f64,
+}
+
+impl From<Conditioning> for ConditioningJson {
+    fn from(c: Conditioning) -> Self {
+        Self {
+            excitation_rms_m_s2: c.excitation_rms_m_s2,
+            scale_sigma: c.scale_sigma,
+            gravity_sigma_deg: c.gravity_sigma_rad.to_degrees(),
+            variance_factor: c.variance_factor,
+        }
+    }
+}
+
+/// Inputs of `kiwi metric`.
+#[derive(Debug, Clone)]
+pub struct MetricOptions {
+    /// The localizer's `poses.csv` of the mapping episode against the map.
+    pub poses: PathBuf,
+    /// `imu.csv` of the same recording.
+    pub imu: PathBuf,
+    /// Unit `calibration.json`.
+    pub calibration: PathBuf,
+    /// Lens of the map.
+    pub lens: String,
+    /// IMU noise `[gn, gw, an, aw]` overriding the artifact's.
+    pub imu_noise: Option<[f64; 4]>,
+    /// Estimator settings.
+    pub config: MetricConfig,
+    /// Output `metric.json`.
+    pub out: PathBuf,
+}
+
+fn vec3(v: &Vector3<f64>) -> [f64; 3] {
+    [v.x, v.y, v.z]
+}
+
+fn write_json<T: Serialize>(path: &Path, value: &T) -> Result<()> {
+    let text = serde_json::to_string_pretty(value)
+        .map_err(|e| input(path, format!("cannot serialize: {e}")))?;
+    kiwi_core::io::write_atomic(path, format!("{text}\n").as_bytes())?;
+    Ok(())
+}
+
+/// Run `kiwi metric`.
+pub fn run_metric(opts: &MetricOptions) -> Result<MetricFile> {
+    let start = std::time::Instant::now();
+    let cal = load_lens_calibration(&opts.calibration, &opts.lens)?;
+    let params = imu_params(opts.imu_noise, Some((&opts.calibration, &cal)))?;
+    let rows = read_localizations(&opts.poses)?;
+    let frames: Vec<MapFrame> = rows
+        .iter()
+        .filter(|r| r.valid)
+        .map(|r| MapFrame {
+            t: r.t,
+            map_from_cam: r.map_from_cam,
+        })
+        .collect();
+    let imu = ImuSeries::read_csv(&opts.imu)?;
+    let r = recover_metric(
+        &frames,
+        imu.samples(),
+        &params,
+        &cal.cam_from_imu,
+        cal.time_shift_s,
+        &opts.config,
+    )
+    .map_err(|e| input(&opts.poses, e.to_string()))?;
+    let file = MetricFile {
+        schema_version: SCHEMA_VERSION,
+        lens: opts.lens.clone(),
+        world_from_map: SimilarityJson::from_sim3(&r.world_from_map),
+        scale_m_per_map_unit: r.scale,
+        gravity_in_map: vec3(&r.gravity_in_map),
+        accel_bias_m_s2: vec3(&r.accel_bias),
+        accel_bias_sigma_m_s2: vec3(&r.accel_bias_sigma),
+        gyro_bias_rad_s: vec3(&r.gyro_bias),
+        conditioning: r.conditioning.into(),
+        frames_used: r.frames_used,
+        frames_lost: rows.len() - frames.len(),
+        outliers_downweighted: r.outliers_downweighted,
+        rms_position_m: r.rms_position_m,
+        rms_rotation_deg: r.rms_rotation_rad.to_degrees(),
+        iterations: r.iterations,
+        seconds: start.elapsed().as_secs_f64(),
+    };
+    write_json(&opts.out, &file)?;
+    Ok(file)
+}
+
+/// Read a `metric.json` written by [`run_metric`].
+pub fn read_metric(path: &Path) -> Result<MetricFile> {
+    let text = std::fs::read_to_string(path)
+        .map_err(|e| input(path, format!("cannot read: {e}; check the path")))?;
+    let file: MetricFile = serde_json::from_str(&text).map_err(|e| {
+        input(
+            path,
+            format!("not a kiwi metric.json: {e}; write it with `kiwi metric`"),
+        )
+    })?;
+    if file.schema_version != SCHEMA_VERSION {
+        return Err(input(
+            path,
+            format!(
+                "schema_version {} is not supported (expected {SCHEMA_VERSION}); re-run kiwi \
+                 metric with this build",
+                file.schema_version
+            ),
+        ));
+    }
+    Ok(file)
+}
+
+/// Apply a map's similarity to a camera pose in it.
+fn apply(sim: &Sim3, map_from_cam: &Pose) -> Pose {
+    Isometry3::from_parts(
+        Translation3::from(sim.transform_point(&map_from_cam.translation.vector)),
+        sim.rotation * map_from_cam.rotation,
+    )
+}
+
+/// Inputs of `kiwi place`.
+#[derive(Debug, Clone)]
+pub struct PlaceOptions {
+    /// Front-lens `poses.csv` of the mapping episode in the front map.
+    pub front: PathBuf,
+    /// Rear-lens `poses.csv` of the same episode in the scene (rear) map.
+    pub rear: PathBuf,
+    /// Unit `calibration.json` (`cam_from_imu` and time shift of both lenses).
+    pub calibration: PathBuf,
+    /// `metric.json` of the front map (applied to the front poses first), if not yet metric.
+    pub front_metric: Option<PathBuf>,
+    /// `metric.json` of the scene map, if not yet metric.
+    pub rear_metric: Option<PathBuf>,
+    /// Robust-fit settings.
+    pub config: PlacementConfig,
+    /// Output `placement.json`.
+    pub out: PathBuf,
+}
+
+/// Contents of `placement.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct PlacementFile {
+    /// [`SCHEMA_VERSION`].
+    pub schema_version: u32,
+    /// `scene_from_front_map` (scale 1: both maps metric).
+    pub scene_from_front_map: SimilarityJson,
+    /// Synchronized pairs of valid localizations.
+    pub pairs: usize,
+    /// Pairs within the inlier thresholds.
+    pub inliers: usize,
+    /// RMS position residual of the inliers (m).
+    pub rms_position_m: f64,
+    /// RMS rotation residual of the inliers (deg).
+    pub rms_rotation_deg: f64,
+}
+
+fn metric_of(path: Option<&Path>) -> Result<Sim3> {
+    match path {
+        Some(p) => read_metric(p)?.world_from_map.to_sim3(p),
+        None => Ok(Sim3::identity()),
+    }
+}
+
+/// Pair front and rear localizations taken together (IMU clock within [`MAX_PAIR_DT_S`]).
+fn pair_up(
+    front: &[Localization],
+    rear: &[Localization],
+    front_shift: f64,
+    rear_shift: f64,
+    front_sim: &Sim3,
+    rear_sim: &Sim3,
+) -> Vec<PlacementPair> {
+    let rear_valid: Vec<&Localization> = rear.iter().filter(|r| r.valid).collect();
+    let mut pairs = Vec::new();
+    for f in front.iter().filter(|f| f.valid) {
+        let t = f.t + front_shift;
+        let k = rear_valid.partition_point(|r| r.t + rear_shift < t);
+        let best = [k.checked_sub(1), Some(k)]
+            .into_iter()
+            .flatten()
+            .filter_map(|i| rear_valid.get(i))
+            .min_by(|a, b| {
+                let da = (a.t + rear_shift - t).abs();
+                let db = (b.t + rear_shift - t).abs();
+                da.total_cmp(&db)
+            });
+        if let Some(r) = best
+            && (r.t + rear_shift - t).abs() <= MAX_PAIR_DT_S
+        {
+            pairs.push(PlacementPair {
+                t,
+                front_map_from_front: apply(front_sim, &f.map_from_cam),
+                scene_from_rear: apply(rear_sim, &r.map_from_cam),
+            });
+        }
+    }
+    pairs
+}
+
+/// Run `kiwi place`.
+pub fn run_place(opts: &PlaceOptions) -> Result<PlacementFile> {
+    let front_cal = load_lens_calibration(&opts.calibration, "front")?;
+    let rear_cal = load_lens_calibration(&opts.calibration, "rear")?;
+    let rear_from_front = rear_cal.cam_from_imu * front_cal.cam_from_imu.inverse();
+    let front = read_localizations(&opts.front)?;
+    let rear = read_localizations(&opts.rear)?;
+    let front_sim = metric_of(opts.front_metric.as_deref())?;
+    let rear_sim = metric_of(opts.rear_metric.as_deref())?;
+    let pairs = pair_up(
+        &front,
+        &rear,
+        front_cal.time_shift_s,
+        rear_cal.time_shift_s,
+        &front_sim,
+        &rear_sim,
+    );
+    let p = place(&pairs, &rear_from_front, &opts.config).map_err(|e| {
+        input(
+            &opts.front,
+            format!(
+                "{e} ({} synchronized pairs of valid front and rear localizations)",
+                pairs.len()
+            ),
+        )
+    })?;
+    let q = p.scene_from_front_map.rotation;
+    let t = p.scene_from_front_map.translation.vector;
+    let file = PlacementFile {
+        schema_version: SCHEMA_VERSION,
+        scene_from_front_map: SimilarityJson::from_sim3(&Sim3 {
+            scale: 1.0,
+            rotation: q,
+            translation: t,
+        }),
+        pairs: p.pairs,
+        inliers: p.inliers,
+        rms_position_m: p.rms_position_m,
+        rms_rotation_deg: p.rms_rotation_rad.to_degrees(),
+    };
+    write_json(&opts.out, &file)?;
+    Ok(file)
+}

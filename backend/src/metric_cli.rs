@@ -1,0 +1,161 @@
+//! `kiwi metric` and `kiwi place`: command-line front of `kiwi_backend::estimate::stages`.
+
+use std::path::PathBuf;
+
+use anyhow::Result;
+
+use kiwi_backend::estimate::metric::MetricConfig;
+use kiwi_backend::estimate::placement::PlacementConfig;
+use kiwi_backend::estimate::stages::{MetricOptions, PlaceOptions, run_metric, run_place};
+
+/// Arguments of `kiwi metric`.
+#[derive(Debug, clap::Args)]
+pub struct MetricArgs {
+    /// The localizer's poses.csv of the mapping episode against the map
+    /// (`t,status,px,py,pz,qx,qy,qz,qw,...`; lost rows are skipped).
+    #[arg(long)]
+    pub poses: PathBuf,
+    /// The IMU log (imu.csv) of the same recording.
+    #[arg(long)]
+    pub imu: PathBuf,
+    /// Unit calibration.json (cam_from_imu and time shift of --lens, IMU noise).
+    #[arg(long)]
+    pub calibration: PathBuf,
+    /// The lens the map was built from.
+    #[arg(long, default_value = "rear")]
+    pub lens: String,
+    /// IMU noise GN,GW,AN,AW overriding the calibration's (SI continuous-time densities).
+    #[arg(long, value_name = "GN,GW,AN,AW")]
+    pub imu_noise: Option<String>,
+    /// Visual noise once metric: METRES,RADIANS [default: 0.002,0.00349].
+    #[arg(long, value_name = "M,RAD")]
+    pub pose_sigma: Option<String>,
+    /// Huber threshold on the whitened 6-dof visual residual [default: 3.55].
+    #[arg(long)]
+    pub huber: Option<f64>,
+    /// Output metric.json (world_from_map, scale, gravity, biases, conditioning).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Print the result as JSON.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// Arguments of `kiwi place`.
+#[derive(Debug, clap::Args)]
+pub struct PlaceArgs {
+    /// Front-lens poses.csv of the mapping episode in the front map.
+    #[arg(long)]
+    pub front: PathBuf,
+    /// Rear-lens poses.csv of the same episode in the scene (rear) map.
+    #[arg(long)]
+    pub rear: PathBuf,
+    /// Unit calibration.json (cam_from_imu and time shift of both lenses).
+    #[arg(long)]
+    pub calibration: PathBuf,
+    /// metric.json of the front map, applied to the front poses first.
+    #[arg(long)]
+    pub front_metric: Option<PathBuf>,
+    /// metric.json of the scene map, applied to the rear poses first.
+    #[arg(long)]
+    pub rear_metric: Option<PathBuf>,
+    /// Output placement.json (scene_from_front_map and inlier statistics).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Print the result as JSON.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// Parse `A,B,...` into exactly `N` positive finite numbers.
+pub fn positive_numbers<const N: usize>(flag: &str, text: &str, what: &str) -> Result<[f64; N]> {
+    let values: Vec<f64> = text
+        .split(',')
+        .map(|v| v.trim().parse::<f64>())
+        .collect::<std::result::Result<_, _>>()
+        .map_err(|_| anyhow::anyhow!("{flag} {text}: expected {what}"))?;
+    let out: [f64; N] = values
+        .try_into()
+        .map_err(|_| anyhow::anyhow!("{flag} {text}: expected {what}"))?;
+    if out.iter().any(|x| !(*x > 0.0 && x.is_finite())) {
+        anyhow::bail!("{flag} {text}: values must be positive (SI units)");
+    }
+    Ok(out)
+}
+
+/// Run `kiwi metric`.
+pub fn run_metric_cmd(args: &MetricArgs) -> Result<()> {
+    let mut config = MetricConfig::default();
+    if let Some(s) = &args.pose_sigma {
+        let [p, r] = positive_numbers::<2>("--pose-sigma", s, "METRES,RADIANS")?;
+        config.sigma_position_m = p;
+        config.sigma_rotation_rad = r;
+    }
+    if let Some(k) = args.huber {
+        if !(k > 0.0 && k.is_finite()) {
+            anyhow::bail!("--huber {k}: expected a positive threshold");
+        }
+        config.huber_k = k;
+    }
+    let imu_noise = args
+        .imu_noise
+        .as_deref()
+        .map(|s| positive_numbers::<4>("--imu-noise", s, "four numbers GN,GW,AN,AW"))
+        .transpose()?;
+    let file = run_metric(&MetricOptions {
+        poses: args.poses.clone(),
+        imu: args.imu.clone(),
+        calibration: args.calibration.clone(),
+        lens: args.lens.clone(),
+        imu_noise,
+        config,
+        out: args.out.clone(),
+    })?;
+    if args.json {
+        println!("{}", serde_json::to_string(&file)?);
+    } else {
+        let c = &file.conditioning;
+        println!(
+            "scale {:.5} m/unit (±{:.2} %), gravity ±{:.3}°, accel bias [{:.4}, {:.4}, {:.4}] \
+             m/s², excitation {:.3} m/s² RMS; {} frames ({} lost, {} outliers) -> {}",
+            file.scale_m_per_map_unit,
+            c.scale_sigma * 100.0,
+            c.gravity_sigma_deg,
+            file.accel_bias_m_s2[0],
+            file.accel_bias_m_s2[1],
+            file.accel_bias_m_s2[2],
+            c.excitation_rms_m_s2,
+            file.frames_used,
+            file.frames_lost,
+            file.outliers_downweighted,
+            args.out.display()
+        );
+    }
+    Ok(())
+}
+
+/// Run `kiwi place`.
+pub fn run_place_cmd(args: &PlaceArgs) -> Result<()> {
+    let file = run_place(&PlaceOptions {
+        front: args.front.clone(),
+        rear: args.rear.clone(),
+        calibration: args.calibration.clone(),
+        front_metric: args.front_metric.clone(),
+        rear_metric: args.rear_metric.clone(),
+        config: PlacementConfig::default(),
+        out: args.out.clone(),
+    })?;
+    if args.json {
+        println!("{}", serde_json::to_string(&file)?);
+    } else {
+        println!(
+            "placed the front map: {} of {} pairs inliers, RMS {:.2} mm / {:.3}° -> {}",
+            file.inliers,
+            file.pairs,
+            file.rms_position_m * 1e3,
+            file.rms_rotation_deg,
+            args.out.display()
+        );
+    }
+    Ok(())
+}
