@@ -260,6 +260,14 @@ pub fn preintegrate_nodes(
             let next = samples.get(j + 1).map_or(tb, |s| s.t.min(tb));
             let next = if next <= cur { tb } else { next };
             let (acc, gyro) = imu_at(samples, j, 0.5 * (cur + next));
+            // GTSAM rotates a step's specific force by the attitude at the step's start: a lag
+            // of half a step that biases Δv by ½|ω|·dt·|a| per step along ω × a (gravity
+            // included), ~2.5e-3 m/s² at 0.5 rad/s and 1 kHz, enough to shift a recovered map
+            // scale by 0.1 %. Turning the sample by half the step's rotation evaluates it at the
+            // step's midpoint instead (second order); `integrate` itself stays GTSAM's.
+            let half_turn =
+                super::factors::rotation_matrix(&((gyro - bias_hat.gyro) * (0.5 * (next - cur))));
+            let acc = half_turn * (acc - bias_hat.acc) + bias_hat.acc;
             pim.integrate(params, &acc, &gyro, next - cur);
             cur = next;
             if j + 1 < samples.len() && samples[j + 1].t <= cur {
