@@ -208,6 +208,10 @@ fn err(message: String) -> BackendError {
     BackendError::Estimation(message)
 }
 
+/// Largest spacing of IMU samples integrated across (s): ten samples at 200 Hz, far above any
+/// jitter of a healthy log, far below the time in which hand motion stops being interpolable.
+pub const MAX_IMU_GAP_S: f64 = 0.05;
+
 /// Linear interpolation of IMU samples at `t`, with `samples[i].t <= t <= samples[i+1].t`.
 fn imu_at(samples: &[ImuSample], i: usize, t: f64) -> (Vector3<f64>, Vector3<f64>) {
     let a = &samples[i];
@@ -244,6 +248,23 @@ pub fn preintegrate_nodes(
             "frames span {t0:.6}..{tn:.6} s but the IMU covers only {:.6}..{:.6} s on the same \
              clock; check the time shift or trim the frame list",
             first.t, last.t
+        )));
+    }
+    // Refuse to invent IMU data across a dropout inside the span the nodes use.
+    let first_used = samples.partition_point(|s| s.t <= t0).saturating_sub(1);
+    let last_used = samples.partition_point(|s| s.t < tn).min(samples.len() - 1);
+    if let Some(w) = samples[first_used..=last_used]
+        .windows(2)
+        .find(|w| w[1].t - w[0].t > MAX_IMU_GAP_S)
+    {
+        return Err(err(format!(
+            "the IMU log has a gap of {:.1} ms between {:.6} s and {:.6} s (limit {:.0} ms), \
+             inside the frames' span; integrating across it would invent motion. Split the \
+             episode at the gap or drop the frames around it",
+            (w[1].t - w[0].t) * 1e3,
+            w[0].t,
+            w[1].t,
+            MAX_IMU_GAP_S * 1e3
         )));
     }
     let mut out = Vec::with_capacity(node_times.len().saturating_sub(1));
@@ -486,4 +507,35 @@ pub fn fuse(
         initial_cost: sol.initial_cost,
         final_cost: sol.final_cost,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn log_with_hole(hole: (f64, f64)) -> Vec<ImuSample> {
+        (0..2000)
+            .map(|k| k as f64 * 1e-3)
+            .filter(|t| !(hole.0..hole.1).contains(t))
+            .map(|t| ImuSample::new(t, Vector3::zeros(), Vector3::new(0.0, 0.0, 9.81)))
+            .collect()
+    }
+
+    #[test]
+    fn imu_gaps_inside_the_frames_are_refused_not_bridged() {
+        let params = ImuParams::from_densities(1e-3, 1e-5, 1e-2, 1e-4, 9.81);
+        let samples = log_with_hole((1.0, 1.1));
+        let nodes: Vec<f64> = (1..19).map(|k| k as f64 * 0.1).collect();
+        let e = preintegrate_nodes(&samples, &params, &nodes, ImuBias::default())
+            .err()
+            .map(|e| e.to_string())
+            .unwrap_or_default();
+        assert!(
+            e.contains("gap of 101.0 ms") && e.contains("0.999000"),
+            "{e}"
+        );
+        // Frames that stay clear of the hole integrate normally.
+        let before: Vec<f64> = (1..9).map(|k| k as f64 * 0.1).collect();
+        assert!(preintegrate_nodes(&samples, &params, &before, ImuBias::default()).is_ok());
+    }
 }
