@@ -9,5 +9,5 @@ pub mod files;
 pub mod fusion;
 pub mod metric;
 pub mod placement;
-pub mod stages;
 pub mod preint;
+pub mod stages;
