@@ -470,63 +470,7 @@ pub fn track_klt(
     }
     let a = prev.as_mat()?;
     let b = next.as_mat()?;
-    let pts: Vector<Point2f> = points
-        .iter()
-        .map(|p| Point2f::new(p.x as f32, p.y as f32))
-        .collect();
-    let criteria = TermCriteria::new(
-        TermCriteria_Type::COUNT as i32 + TermCriteria_Type::EPS as i32,
-        options.iterations,
-        0.01,
-    )
-    .map_err(cv_err("KLT"))?;
-    let win = Size::new(options.window, options.window);
-    let run = |from: &opencv::boxed_ref::BoxedRef<'_, Mat>,
-               to: &opencv::boxed_ref::BoxedRef<'_, Mat>,
-               src: &Vector<Point2f>|
-     -> Result<(Vector<Point2f>, Vector<u8>)> {
-        let mut dst = Vector::<Point2f>::new();
-        let mut status = Vector::<u8>::new();
-        let mut err = Vector::<f32>::new();
-        opencv::video::calc_optical_flow_pyr_lk(
-            from,
-            to,
-            src,
-            &mut dst,
-            &mut status,
-            &mut err,
-            win,
-            options.levels,
-            criteria,
-            0,
-            1e-4,
-        )
-        .map_err(cv_err("KLT"))?;
-        Ok((dst, status))
-    };
-    let (fwd, st1) = run(&a, &b, &pts)?;
-    let (bwd, st2) = run(&b, &a, &fwd)?;
-    let mut out = Vec::with_capacity(points.len());
-    for i in 0..points.len() {
-        let ok = st1.get(i).unwrap_or(0) != 0 && st2.get(i).unwrap_or(0) != 0;
-        let (Ok(f), Ok(back)) = (fwd.get(i), bwd.get(i)) else {
-            out.push(None);
-            continue;
-        };
-        let fb = (f64::from(back.x) - points[i].x).hypot(f64::from(back.y) - points[i].y);
-        let pixel = Point2::new(f64::from(f.x), f64::from(f.y));
-        let in_mask =
-            mask.is_none_or(|m| m.get(pixel.x.round() as i64, pixel.y.round() as i64) > 0);
-        if !ok || fb > options.max_forward_backward_px || !in_mask || !camera.in_image(&pixel) {
-            out.push(None);
-            continue;
-        }
-        out.push(camera.unproject(&pixel).map(|b| Track {
-            pixel,
-            bearing: b.into_inner(),
-        }));
-    }
-    Ok(out)
+    klt_forward_backward(&a, &b, points, mask, camera, options)
 }
 
 /// A frame's KLT image pyramid (with derivatives), built once and reused for the forward and
@@ -582,6 +526,20 @@ pub fn track_klt_pyramids(
             ),
         });
     }
+    klt_forward_backward(&prev.levels, &next.levels, points, mask, camera, options)
+}
+
+/// Forward–backward pyramidal KLT from `prev` to `next` (images or prebuilt pyramids): a point is
+/// kept when both directions converge, it returns within the forward–backward threshold, lands
+/// inside the mask and the image, and unprojects to a bearing.
+fn klt_forward_backward<I: opencv::core::ToInputArray>(
+    prev: &I,
+    next: &I,
+    points: &[Point2<f64>],
+    mask: Option<&Mask>,
+    camera: &dyn CameraModel,
+    options: &KltOptions,
+) -> Result<Vec<Option<Track>>> {
     let pts: Vector<Point2f> = points
         .iter()
         .map(|p| Point2f::new(p.x as f32, p.y as f32))
@@ -593,10 +551,7 @@ pub fn track_klt_pyramids(
     )
     .map_err(cv_err("KLT"))?;
     let win = Size::new(options.window, options.window);
-    let run = |from: &Vector<Mat>,
-               to: &Vector<Mat>,
-               src: &Vector<Point2f>|
-     -> Result<(Vector<Point2f>, Vector<u8>)> {
+    let run = |from: &I, to: &I, src: &Vector<Point2f>| -> Result<(Vector<Point2f>, Vector<u8>)> {
         let mut dst = Vector::<Point2f>::new();
         let mut status = Vector::<u8>::new();
         let mut err = Vector::<f32>::new();
@@ -616,8 +571,8 @@ pub fn track_klt_pyramids(
         .map_err(cv_err("KLT"))?;
         Ok((dst, status))
     };
-    let (fwd, st1) = run(&prev.levels, &next.levels, &pts)?;
-    let (bwd, st2) = run(&next.levels, &prev.levels, &fwd)?;
+    let (fwd, st1) = run(prev, next, &pts)?;
+    let (bwd, st2) = run(next, prev, &fwd)?;
     let mut out = Vec::with_capacity(points.len());
     for i in 0..points.len() {
         let ok = st1.get(i).unwrap_or(0) != 0 && st2.get(i).unwrap_or(0) != 0;
