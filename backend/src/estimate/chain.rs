@@ -57,6 +57,42 @@ pub fn imu_information(cov: &Matrix15, model: ImuNoiseModel) -> Matrix15 {
     }
 }
 
+/// The whitened cost `½ Σ rᵀ Σ⁻¹ r` of the IMU factors between consecutive `nodes`.
+pub(super) fn imu_cost(
+    imu: &[Preintegrated],
+    imu_info: &[Matrix15],
+    gravity: &Vector3<f64>,
+    nodes: &[NavNode],
+) -> f64 {
+    imu.iter()
+        .enumerate()
+        .map(|(k, pim)| {
+            let r = imu_linearize(pim, gravity, &nodes[k], &nodes[k + 1], false).residual;
+            0.5 * (r.transpose() * imu_info[k] * r)[0]
+        })
+        .sum()
+}
+
+/// Add the IMU factor between nodes `k` and `k + 1` to the block-tridiagonal normal equations
+/// (`diag`, `off`) and return its gradient contributions to the two nodes.
+pub(super) fn accumulate_imu(
+    pim: &Preintegrated,
+    info: &Matrix15,
+    gravity: &Vector3<f64>,
+    nodes: &[NavNode],
+    k: usize,
+    diag: &mut [Matrix15],
+    off: &mut Matrix15,
+) -> (Vector15, Vector15) {
+    let lin = imu_linearize(pim, gravity, &nodes[k], &nodes[k + 1], true);
+    let wi = lin.jac_i.transpose() * info;
+    let wj = lin.jac_j.transpose() * info;
+    diag[k] += wi * lin.jac_i;
+    diag[k + 1] += wj * lin.jac_j;
+    *off += wi * lin.jac_j;
+    (wi * lin.residual, wj * lin.residual)
+}
+
 /// A chain problem: initial states, IMU factors between neighbours, unary factors.
 #[derive(Debug, Clone)]
 pub struct ChainProblem {
@@ -123,9 +159,9 @@ pub struct ChainSolution {
 }
 
 /// Damping floor relative to each diagonal entry (Marquardt scaling with a minimum).
-const MIN_DIAGONAL: f64 = 1e-6;
+pub(super) const MIN_DIAGONAL: f64 = 1e-6;
 /// Give up raising lambda past this (the step is then below numerical resolution).
-const MAX_LAMBDA: f64 = 1e10;
+pub(super) const MAX_LAMBDA: f64 = 1e10;
 
 /// Working storage of the block-tridiagonal system, allocated once per solve.
 struct System {
@@ -141,11 +177,7 @@ struct System {
 
 impl ChainProblem {
     fn cost(&self, nodes: &[NavNode], imu_info: &[Matrix15]) -> f64 {
-        let mut cost = 0.0;
-        for (k, pim) in self.imu.iter().enumerate() {
-            let r = imu_linearize(pim, &self.gravity, &nodes[k], &nodes[k + 1], false).residual;
-            cost += 0.5 * (r.transpose() * imu_info[k] * r)[0];
-        }
+        let mut cost = imu_cost(&self.imu, imu_info, &self.gravity, nodes);
         for f in &self.pose_factors {
             let (e, _) = pose_linearize(&f.z, &nodes[f.node]);
             let s = whitened_norm(&e, f);
@@ -172,15 +204,17 @@ impl ChainProblem {
             g.fill(0.0);
         }
         for (k, pim) in self.imu.iter().enumerate() {
-            let lin = imu_linearize(pim, &self.gravity, &nodes[k], &nodes[k + 1], true);
-            let info = &sys.imu_info[k];
-            let wi = lin.jac_i.transpose() * info;
-            let wj = lin.jac_j.transpose() * info;
-            sys.diag[k] += wi * lin.jac_i;
-            sys.diag[k + 1] += wj * lin.jac_j;
-            sys.off[k] += wi * lin.jac_j;
-            sys.grad[k] += wi * lin.residual;
-            sys.grad[k + 1] += wj * lin.residual;
+            let (gi, gj) = accumulate_imu(
+                pim,
+                &sys.imu_info[k],
+                &self.gravity,
+                nodes,
+                k,
+                &mut sys.diag,
+                &mut sys.off[k],
+            );
+            sys.grad[k] += gi;
+            sys.grad[k + 1] += gj;
         }
         for f in &self.pose_factors {
             let (e, jac) = pose_linearize(&f.z, &nodes[f.node]);
@@ -352,7 +386,8 @@ impl ChainProblem {
     }
 }
 
-fn cholesky_inverse(l: &Matrix15) -> Matrix15 {
+/// `(L Lᵀ)⁻¹` from a Cholesky factor `L` (zeros if `L` is singular).
+pub(super) fn cholesky_inverse(l: &Matrix15) -> Matrix15 {
     let mut inv = Matrix15::identity();
     if l.solve_lower_triangular_mut(&mut inv) {
         inv.transpose() * inv

@@ -29,10 +29,11 @@ use kiwi_core::geometry::{Pose, hat, so3_right_jacobian_inv};
 use kiwi_core::imu::ImuSample;
 use nalgebra::{Cholesky, DMatrix, DVector, Matrix3, SMatrix, SVector, UnitQuaternion, Vector3};
 
-use super::chain::{ImuNoiseModel, imu_information};
-use super::factors::{
-    NavNode, huber_loss, huber_weight, imu_linearize, rotation_log, rotation_matrix,
+use super::chain::{
+    ImuNoiseModel, MAX_LAMBDA, MIN_DIAGONAL, accumulate_imu, cholesky_inverse, imu_cost,
+    imu_information,
 };
+use super::factors::{NavNode, huber_loss, huber_weight, rotation_log, rotation_matrix};
 use super::fusion::preintegrate_nodes;
 use super::preint::{ImuBias, ImuParams, Matrix15, Preintegrated, Vector15};
 use crate::error::{BackendError, Result};
@@ -52,10 +53,6 @@ pub const MIN_FRAMES: usize = 100;
 /// Keyframe spacing of the linear initialisation (s): long enough that the IMU sees a
 /// displacement well above the visual noise between keyframes, short enough for many equations.
 const KEYFRAME_SPACING_S: f64 = 0.75;
-/// Damping floor relative to each diagonal entry (Marquardt scaling with a minimum).
-const MIN_DIAGONAL: f64 = 1e-6;
-/// Give up raising lambda past this.
-const MAX_LAMBDA: f64 = 1e10;
 /// Initial Marquardt damping: the scale's information is a small difference of large terms
 /// (the Schur complement), so even 1e-6 of relative damping on the nodes stalls the scale step;
 /// the problem is close to quadratic, so start almost undamped.
@@ -285,11 +282,7 @@ impl Problem<'_> {
     }
 
     fn cost(&self, nodes: &[NavNode], g: &Globals) -> f64 {
-        let mut cost = 0.0;
-        for (k, pim) in self.imu.iter().enumerate() {
-            let r = imu_linearize(pim, &self.gravity, &nodes[k], &nodes[k + 1], false).residual;
-            cost += 0.5 * (r.transpose() * self.imu_info[k] * r)[0];
-        }
+        let mut cost = imu_cost(self.imu, &self.imu_info, &self.gravity, nodes);
         for (v, x) in self.visual.iter().zip(nodes) {
             let (e, _, _) = visual_linearize(v, &self.lever, x, g, self.scale_ref, false);
             cost += huber_loss(self.whitened(&e), self.huber_k);
@@ -311,15 +304,15 @@ impl Problem<'_> {
         sys.grad_g.fill(0.0);
         // `rhs[k]` column 0 holds the node gradient, columns 1.. the node–global coupling.
         for (k, pim) in self.imu.iter().enumerate() {
-            let lin = imu_linearize(pim, &self.gravity, &nodes[k], &nodes[k + 1], true);
-            let info = &self.imu_info[k];
-            let wi = lin.jac_i.transpose() * info;
-            let wj = lin.jac_j.transpose() * info;
-            sys.diag[k] += wi * lin.jac_i;
-            sys.diag[k + 1] += wj * lin.jac_j;
-            sys.off[k] += wi * lin.jac_j;
-            let gi = wi * lin.residual;
-            let gj = wj * lin.residual;
+            let (gi, gj) = accumulate_imu(
+                pim,
+                &self.imu_info[k],
+                &self.gravity,
+                nodes,
+                k,
+                &mut sys.diag,
+                &mut sys.off[k],
+            );
             let mut c = sys.rhs[k].column_mut(0);
             c += gi;
             let mut c = sys.rhs[k + 1].column_mut(0);
@@ -794,18 +787,10 @@ fn solve_lm(
 /// inversion from the end).
 fn chain_marginal(sys: &System, k: usize) -> Matrix15 {
     let n = sys.factor.len();
-    let inv = |l: &Matrix15| {
-        let mut m = Matrix15::identity();
-        if l.solve_lower_triangular_mut(&mut m) {
-            m.transpose() * m
-        } else {
-            Matrix15::zeros()
-        }
-    };
-    let mut sigma = inv(&sys.factor[n - 1]);
+    let mut sigma = cholesky_inverse(&sys.factor[n - 1]);
     for j in (k..n - 1).rev() {
         let g = &sys.gain[j];
-        sigma = inv(&sys.factor[j]) + g * sigma * g.transpose();
+        sigma = cholesky_inverse(&sys.factor[j]) + g * sigma * g.transpose();
     }
     sigma
 }
