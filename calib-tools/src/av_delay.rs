@@ -603,6 +603,12 @@ pub fn analyse(captures: &[PathBuf], options: &AvDelayOptions) -> Result<AvDelay
         .iter()
         .map(|c| analyse_capture(c, options))
         .collect::<Result<_>>()?;
+    Ok(summarize(results))
+}
+
+/// Aggregate analysed captures per camera model and mode, and difference the video fits of
+/// captures whose display-clock spans overlap (recorded together).
+pub fn summarize(results: Vec<CaptureResult>) -> AvDelayReport {
     let mut modes: Vec<ModeDelay> = Vec::new();
     for r in &results {
         if modes
@@ -674,11 +680,11 @@ pub fn analyse(captures: &[PathBuf], options: &AvDelayOptions) -> Result<AvDelay
             .sqrt(),
         });
     }
-    Ok(AvDelayReport {
+    AvDelayReport {
         captures: results,
         modes,
         offsets,
-    })
+    }
 }
 
 /// A small SVG scatter plot of residuals (ms) against time (s).

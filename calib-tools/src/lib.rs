@@ -9,6 +9,7 @@ pub mod allan;
 pub mod av_delay;
 pub mod bench;
 pub mod cam_imu;
+pub mod certify;
 pub mod detect;
 pub mod error;
 pub mod export;

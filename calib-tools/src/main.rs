@@ -147,6 +147,12 @@ enum Command {
     /// Jaw bench: record a Feetech servo encoder, run a simulated servo, compare with vision.
     #[command(subcommand)]
     Bench(kiwi_calib::bench::cli::BenchCommand),
+    /// Certify a unit from its capture folder: intrinsics, IMU noise, camera–IMU and A/V delay
+    /// in one run, written to units/ID/YYYY-MM-DD[-N]/ with a verdict (docs/certify.md).
+    Certify(kiwi_calib::certify::cli::CertifyArgs),
+    /// List certified units, or show a unit's latest set.
+    #[command(subcommand)]
+    Units(kiwi_calib::certify::cli::UnitsCommand),
 }
 
 fn main() -> Result<()> {
@@ -469,6 +475,15 @@ fn main() -> Result<()> {
         }
         Command::Bench(cmd) => {
             println!("{}", kiwi_calib::bench::cli::run(&cmd)?);
+        }
+        Command::Certify(args) => {
+            let report = kiwi_calib::certify::cli::run_certify(&args)?;
+            if !report.passed {
+                std::process::exit(kiwi_calib::certify::cli::EXIT_NOT_CERTIFIED);
+            }
+        }
+        Command::Units(cmd) => {
+            print!("{}", kiwi_calib::certify::cli::run_units(&cmd)?);
         }
     }
     Ok(())

@@ -1,0 +1,359 @@
+#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
+//! Acceptance of `kiwi-calib certify` on simulated units.
+//!
+//! One simulated X5 unit (480 px lenses, 24 aprilgrid views per lens, a 4 s camera–IMU
+//! excitation, a 4-h static IMU log at 100 Hz, two 20 s QR-clock rig sessions in the 30 fps
+//! mode) certifies end to end with every value inside the individual issues' tolerances;
+//! the same unit certified again after a simulated firmware change (focal lengths +0.4 %) gets a
+//! second folder and `--previous` flags exactly its intrinsics (the no-change case with a second
+//! full capture session runs in benches/certify.rs). Three reduced captures fail with the named check: too few views, a moving
+//! "static" IMU log, a rig recording without chirps.
+
+use std::path::{Path, PathBuf};
+
+use kiwi_calib::certify::policy::Policy;
+use kiwi_calib::certify::{CertifyOptions, CertifyReport, certify, report};
+use kiwi_core::artifact::UnitCalibration;
+use kiwi_core::camera::CameraModel;
+use kiwi_fixtures::captures::{UnitCaptureOptions, write_unit_captures};
+
+const DATE: &str = "2026-11-22";
+
+fn sim(dir: &Path, name: &str, edit: impl FnOnce(&mut UnitCaptureOptions)) -> PathBuf {
+    let out = dir.join(name);
+    let mut o = UnitCaptureOptions::new(&out, "X5-CERT");
+    o.seed = 7;
+    o.resolution = 480;
+    o.views = 24;
+    o.cam_imu_duration_s = 4.0;
+    o.static_duration_s = 4.0 * 3600.0;
+    o.static_rate_hz = Some(100.0);
+    o.bench_duration_s = 0.0;
+    o.rig_duration_s = 20.0;
+    o.rig_repeats = 2;
+    o.rig_modes = vec!["30fps".into()];
+    // Half the default sensor noise: smaller PNGs on disk, same code paths.
+    o.noise_sigma = 1.0;
+    edit(&mut o);
+    write_unit_captures(&o).unwrap();
+    out
+}
+
+fn options(captures: &Path, units: &Path, previous: Option<&Path>) -> CertifyOptions {
+    CertifyOptions {
+        unit_id: "X5-CERT".into(),
+        captures: captures.to_path_buf(),
+        units_dir: units.to_path_buf(),
+        policy: Policy::default(),
+        previous: previous.map(Path::to_path_buf),
+        date: Some(DATE.into()),
+        progress: false,
+    }
+}
+
+fn describe(r: &CertifyReport) -> String {
+    r.checks
+        .iter()
+        .map(|c| {
+            format!(
+                "{} {} ({} {}) {}{}",
+                c.check.name,
+                c.check.value,
+                c.check.comparison,
+                c.check.threshold,
+                if c.check.passed { "ok" } else { "FAIL" },
+                c.note
+                    .as_ref()
+                    .map_or_else(String::new, |n| format!(": {n}"))
+            )
+        })
+        .collect::<Vec<_>>()
+        .join("\n")
+}
+
+/// Failed checks other than those naming missing captures or skipped dependants.
+fn own_failures(r: &CertifyReport) -> Vec<String> {
+    r.failed_checks
+        .iter()
+        .filter(|c| !c.ends_with(".captures") && *c != "cam_imu.intrinsics")
+        .cloned()
+        .collect()
+}
+
+/// RMS (px) of how far `fitted` projects the directions `truth` sees, within 90° off-axis.
+fn projection_rms(truth: &kiwi_core::camera::Camera, fitted: &kiwi_core::camera::Camera) -> f64 {
+    let (w, h) = truth.resolution();
+    let (mut sum, mut n) = (0.0, 0usize);
+    for y in (0..h).step_by(4) {
+        for x in (0..w).step_by(4) {
+            let p = nalgebra::Point2::new(f64::from(x), f64::from(y));
+            let Some(b) = truth.unproject(&p) else {
+                continue;
+            };
+            if b.z.clamp(-1.0, 1.0).acos() > 90f64.to_radians() {
+                continue;
+            }
+            let q = fitted.project(&b).unwrap();
+            sum += (q - p).norm_squared();
+            n += 1;
+        }
+    }
+    (sum / n as f64).sqrt()
+}
+
+#[test]
+fn simulated_unit_certifies_recertifies_and_flags_a_firmware_change() {
+    let tmp = tempfile::tempdir().unwrap();
+    let cap = sim(tmp.path(), "captures", |_| {});
+    let units = tmp.path().join("units");
+    let a = certify(&options(&cap, &units, None)).unwrap();
+    println!("{}", describe(&a));
+    assert!(a.passed, "failed: {:?}\n{}", a.failed_checks, describe(&a));
+    assert_eq!(a.folder, units.join("X5-CERT").join(DATE));
+
+    // Every value inside the individual issues' tolerances.
+    let truth = UnitCalibration::load(&cap.join("truth/calibration.json")).unwrap();
+    let cal = UnitCalibration::load(&a.folder.join("calibration.json")).unwrap();
+    assert!(cal.certification.as_ref().unwrap().passed);
+    for t in &truth.lenses {
+        let l = cal.lens(&t.name).unwrap();
+        let (tc, lc) = (t.camera().unwrap(), l.camera().unwrap());
+        let (tp, lp) = (t.intrinsics.params(), l.intrinsics.params());
+        let fx_err = (lp[0] / tp[0] - 1.0).abs();
+        let c_err = (lp[2] - tp[2]).hypot(lp[3] - tp[3]);
+        let proj = projection_rms(&tc, &lc);
+        let xt = t.cam_from_imu().unwrap();
+        let xl = l.cam_from_imu().unwrap();
+        let rot = (xt.rotation.inverse() * xl.rotation).angle().to_degrees();
+        let trans = (xt.translation.vector - xl.translation.vector).norm();
+        let shift = (t.time_shift_s.unwrap() - l.time_shift_s.unwrap()).abs();
+        println!(
+            "{}: fx {:.4} %, principal point {c_err:.3} px, projection {proj:.4} px, rotation \
+             {rot:.4} deg, translation {:.3} mm, time shift {:.4} ms",
+            t.name,
+            fx_err * 100.0,
+            trans * 1e3,
+            shift * 1e3
+        );
+        // Intrinsics issue: focal length within 0.1 %, projection within 0.05 px at 960 px
+        // (0.025 px at this 480 px resolution scales to the same angle; 0.05 px allowed).
+        assert!(fx_err < 1e-3, "{}: fx off by {fx_err}", t.name);
+        assert!(proj < 0.05, "{}: projection error {proj} px", t.name);
+        // Camera–IMU issue: 0.1°, 2 mm, 0.2 ms.
+        assert!(rot < 0.1 && trans < 0.002 && shift < 2e-4, "{}", t.name);
+    }
+    let (ti, ci) = (truth.imu.as_ref().unwrap(), cal.imu.as_ref().unwrap());
+    for (name, t, c, tol) in [
+        (
+            "gyro N",
+            ti.gyroscope_noise_density,
+            ci.gyroscope_noise_density,
+            0.03,
+        ),
+        (
+            "accel N",
+            ti.accelerometer_noise_density,
+            ci.accelerometer_noise_density,
+            0.03,
+        ),
+        (
+            "gyro K",
+            ti.gyroscope_random_walk,
+            ci.gyroscope_random_walk,
+            0.15,
+        ),
+        (
+            "accel K",
+            ti.accelerometer_random_walk,
+            ci.accelerometer_random_walk,
+            0.15,
+        ),
+    ] {
+        let err = (c / t - 1.0).abs();
+        println!("imu {name}: {:.2} %", err * 100.0);
+        // IMU issue: N within 3 %, K within 15 %.
+        assert!(err < tol, "imu {name}: {c} vs truth {t}");
+    }
+    assert_eq!(cal.av_delays.len(), 1);
+    for d in &cal.av_delays {
+        let t = truth.av_delays.iter().find(|t| t.mode == d.mode).unwrap();
+        let err = (d.delay_s - t.delay_s).abs();
+        println!(
+            "A/V delay {}: error {:.3} ms over {} repeats",
+            d.mode,
+            err * 1e3,
+            d.repeats
+        );
+        // A/V-delay issue: within 1 ms.
+        assert!(err < 1e-3 && d.repeats == 2);
+    }
+    for f in [
+        "calibration.json",
+        "certification.json",
+        "camchain-imucam.yaml",
+        "imu.yaml",
+        "basalt_calibration.json",
+        "report/index.md",
+        "report/policy.toml",
+    ] {
+        assert!(a.folder.join(f).is_file(), "{f} missing");
+    }
+    let page = std::fs::read_to_string(a.folder.join("report/index.md")).unwrap();
+    assert!(page.starts_with("# Certification of unit X5-CERT"));
+    assert!(page.lines().nth(2).unwrap().contains("CERTIFIED"));
+    let images: Vec<&str> = page
+        .lines()
+        .filter_map(|l| l.strip_prefix("![").and_then(|r| r.split("](").nth(1)))
+        .map(|r| r.trim_end_matches(')'))
+        .collect();
+    for step in [
+        "intrinsics-front/",
+        "intrinsics-rear/",
+        "imu_noise/",
+        "cam_imu/",
+        "av_delay/",
+    ] {
+        assert!(
+            images.iter().any(|i| i.starts_with(step)),
+            "no {step} plot in the page"
+        );
+    }
+    for i in &images {
+        assert!(a.folder.join("report").join(i).is_file(), "{i} missing");
+    }
+    let first_calibration = std::fs::read(a.folder.join("calibration.json")).unwrap();
+    // The captures are no longer needed: free the disk before the next unit.
+    std::fs::remove_dir_all(&cap).unwrap();
+
+    // The same unit after a firmware change that scales its lens images by 0.4 %: its lenses
+    // and static log (re-rendered; the excitation and rig are left out to keep the test short,
+    // the benchmark certifies them too) are compared with the first set.
+    let changed = sim(tmp.path(), "changed", |o| {
+        o.focal_change = 0.004;
+        o.firmware = "sim-1.1".into();
+        o.cam_imu_duration_s = 0.0;
+        o.rig_duration_s = 0.0;
+    });
+    let d = certify(&options(&changed, &units, Some(&a.folder))).unwrap();
+    assert!(!d.passed);
+    // Certifying the unit again writes a second folder and never touches the first.
+    assert_eq!(d.folder, units.join("X5-CERT").join(format!("{DATE}-2")));
+    assert_eq!(
+        std::fs::read(a.folder.join("calibration.json")).unwrap(),
+        first_calibration
+    );
+    let c = d.comparison.as_ref().unwrap();
+    println!("firmware change flags {:?}", c.significant);
+    assert_eq!(c.changed_groups, vec!["intrinsics".to_string()]);
+    for lens in ["front", "rear"] {
+        for p in ["fx", "fy"] {
+            let name = format!("{lens}.intrinsics.{p}");
+            assert!(c.significant.contains(&name), "{name} not flagged");
+        }
+    }
+    assert!(
+        c.parameters
+            .iter()
+            .any(|p| p.group == "imu_noise" && !p.significant)
+    );
+    let listed = report::list_text(&report::list_units(&units).unwrap());
+    assert!(
+        listed.contains(&format!("{DATE}-3")) && listed.contains("FAILED"),
+        "{listed}"
+    );
+}
+
+#[test]
+fn too_few_views_fail_the_views_check() {
+    let tmp = tempfile::tempdir().unwrap();
+    let cap = sim(tmp.path(), "few", |o| {
+        o.views = 5;
+        o.resolution = 320;
+        o.cam_imu_duration_s = 0.0;
+        o.static_duration_s = 0.0;
+        o.rig_duration_s = 0.0;
+    });
+    let r = certify(&options(&cap, &tmp.path().join("units"), None)).unwrap();
+    assert!(!r.passed);
+    assert_eq!(
+        own_failures(&r),
+        vec!["front.views", "rear.views"],
+        "{}",
+        describe(&r)
+    );
+    // Written all the same, marked failed.
+    let record = std::fs::read_to_string(r.folder.join("certification.json")).unwrap();
+    assert!(record.contains("\"passed\": false") && record.contains("front.views"));
+    let page = std::fs::read_to_string(r.folder.join("report/index.md")).unwrap();
+    assert!(page.contains("NOT CERTIFIED") && page.contains("`front.views`"));
+}
+
+#[test]
+fn a_moving_static_log_fails_the_motion_check() {
+    let tmp = tempfile::tempdir().unwrap();
+    let cap = sim(tmp.path(), "moving", |o| {
+        o.views = 0;
+        o.cam_imu_duration_s = 0.0;
+        o.static_duration_s = 3600.0;
+        o.rig_duration_s = 0.0;
+    });
+    // Someone turns the unit at 0.2 rad/s for 3 s in the middle of the "static" log.
+    let path = cap.join("imu_static/imu.csv");
+    let text = std::fs::read_to_string(&path).unwrap();
+    let mut out = String::with_capacity(text.len());
+    for (i, line) in text.lines().enumerate() {
+        let mut f: Vec<String> = line.split(',').map(str::to_string).collect();
+        if i > 0 {
+            let t: f64 = f[0].parse().unwrap();
+            if (1800.0..1803.0).contains(&t) {
+                f[3] = (f[3].parse::<f64>().unwrap() + 0.2).to_string();
+            }
+        }
+        out.push_str(&f.join(","));
+        out.push('\n');
+    }
+    std::fs::write(&path, out).unwrap();
+    let r = certify(&options(&cap, &tmp.path().join("units"), None)).unwrap();
+    assert!(!r.passed);
+    assert_eq!(
+        own_failures(&r),
+        vec!["imu.static_gyro_motion_rad_s"],
+        "{}",
+        describe(&r)
+    );
+    let check = r
+        .checks
+        .iter()
+        .find(|c| c.check.name == "imu.static_gyro_motion_rad_s")
+        .unwrap();
+    assert!(
+        check.note.as_ref().unwrap().contains("t = 18"),
+        "{:?}",
+        check.note
+    );
+}
+
+#[test]
+fn a_rig_recording_without_chirps_fails_the_chirp_check() {
+    let tmp = tempfile::tempdir().unwrap();
+    let cap = sim(tmp.path(), "silent", |o| {
+        o.views = 0;
+        o.resolution = 320;
+        o.cam_imu_duration_s = 0.0;
+        o.static_duration_s = 0.0;
+        o.rig_duration_s = 3.0;
+        o.rig_repeats = 1;
+        o.rig_chirps = false;
+    });
+    let r = certify(&options(&cap, &tmp.path().join("units"), None)).unwrap();
+    assert!(!r.passed);
+    assert_eq!(
+        own_failures(&r),
+        vec![
+            "av_delay.x5-30fps.r1-30fps-cam0.chirps",
+            "av_delay.x5-30fps.repeats"
+        ],
+        "{}",
+        describe(&r)
+    );
+}
