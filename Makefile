@@ -10,7 +10,7 @@ DEMO_SEED ?= 7
 .PHONY: help deps build demo test bench clean
 
 help:
-	@echo "make demo   simulate a session and run KIWI on it (installs what it needs)"
+	@echo "make demo   simulate a unit and certify it, simulate a session and check it (installs what it needs)"
 	@echo "make test   formatting, lints and every test"
 	@echo "make bench  benchmarks (release build)"
 	@echo "make deps   install the system packages the build needs (apt)"
@@ -28,9 +28,13 @@ build: deps
 
 demo: build
 	rm -rf $(DEMO_OUT)
+	./target/release/kiwi-sim unit --out $(DEMO_OUT)/captures/X5-DEMO --unit-id X5-DEMO --seed $(DEMO_SEED) --resolution 480 --views 24 --cam-imu-duration 4 --static-hours 4 --static-rate 100 --bench-duration 0 --rig-duration 20 --rig-modes 30fps --rig-repeats 2
+	./target/release/kiwi-calib certify --unit X5-DEMO --captures $(DEMO_OUT)/captures/X5-DEMO --out $(DEMO_OUT)/units
+	./target/release/kiwi-calib units list $(DEMO_OUT)/units
 	./target/release/kiwi-sim session --out $(DEMO_OUT)/session --seed $(DEMO_SEED) --scenario tabletop --episodes 1 --duration 2 --resolution 480 --rate 29.97
 	./target/release/kiwi inspect $(DEMO_OUT)/session/session.toml
 	./target/release/kiwi-sim contact-sheet --out $(DEMO_OUT)/contact_sheet.png --seed $(DEMO_SEED) --tile 256
+	@echo "demo: unit X5-DEMO certified into $(DEMO_OUT)/units/X5-DEMO (report: $$(ls -d $(DEMO_OUT)/units/X5-DEMO/*/ | tail -1)report/index.md)"
 	@echo "demo: session in $(DEMO_OUT)/session (truth in its episodes' truth/ folders), contact sheet $(DEMO_OUT)/contact_sheet.png"
 
 test: deps
@@ -47,6 +51,7 @@ bench: deps
 	cargo bench -p kiwi-calib --bench intrinsics
 	cargo bench -p kiwi-calib --bench imu_noise
 	cargo bench -p kiwi-calib --bench cam_imu
+	cargo bench -p kiwi-calib --bench certify
 	cargo bench -p kiwi-backend --bench fuse
 	cargo bench -p kiwi-backend --bench vision
 
