@@ -3,13 +3,17 @@
 //! imply against the issue's target of ≥ 30 (aim 60) localized frames per second per core.
 //! Prints median wall times over repeated runs.
 //!
-//! Then the end-to-end run: the simulator writes a mapping session and a tabletop session of
-//! the same room at 960 px, 30 Hz, with motion blur (`KIWI_BENCH_VISION_SECONDS`, default 1 s;
-//! the issue's acceptance run is 60 s, which takes hours to render on two cores), `build_map`
-//! maps each wrist-0 lens, and every front/rear stream of both wrists of the tabletop episode is
-//! localized against the left maps on one thread (one OpenCV thread, a rayon pool of one):
-//! mapping time, keyframe ATE after Sim(3), localized fractions, position errors after the
-//! map's Sim(3) and throughput in frames per second per core (image decoding included).
+//! Then the end-to-end acceptance run of issue 10: the simulator writes a mapping, a tabletop and
+//! a walk session of the same room (seed 7) at 960 px, 30 Hz, with motion blur, sensor noise and
+//! rolling shutter (`KIWI_BENCH_VISION_SECONDS` for the mapping episode, default 1 s;
+//! `KIWI_BENCH_VISION_QUERY_SECONDS` for the other two, default the same; the issue's mapping
+//! episode is 60 s). With `KIWI_BENCH_VISION_DIR` the sessions are rendered once into that
+//! folder and reused by later runs. `build_map` builds a front map per wrist and the left rear
+//! map (shared by both wrists); all four streams of the tabletop and walk episodes are localized
+//! against them, and the right front stream also against the left front map (cross-hand). Printed:
+//! mapping time, keyframe ATE after Sim(3), localized fractions, position errors after the map's
+//! Sim(3), poses over 5 cm, and throughput in frames per second per core (frames over the
+//! process's CPU seconds, image decoding included) with the pass/fail of each criterion.
 
 #![allow(clippy::unwrap_used, clippy::expect_used, missing_docs)]
 
@@ -65,46 +69,108 @@ fn at(rows: &[(f64, Vector3<f64>)], t: f64) -> Vector3<f64> {
         .unwrap()
 }
 
+/// CPU seconds (user + system) from a `/proc/.../stat` file (Linux; `None` elsewhere).
+fn cpu_seconds(stat: &str) -> Option<f64> {
+    let text = std::fs::read_to_string(stat).ok()?;
+    // Fields after the parenthesized command name; utime and stime are fields 14 and 15.
+    let rest = &text[text.rfind(')')? + 2..];
+    let f: Vec<&str> = rest.split_whitespace().collect();
+    let ticks = f.get(11)?.parse::<f64>().ok()? + f.get(12)?.parse::<f64>().ok()?;
+    // USER_HZ is 100 on Linux.
+    Some(ticks / 100.0)
+}
+
+/// CPU seconds of the whole process and of the calling thread.
+fn cpu_now() -> (f64, f64) {
+    (
+        cpu_seconds("/proc/self/stat").unwrap_or(f64::NAN),
+        cpu_seconds("/proc/thread-self/stat").unwrap_or(f64::NAN),
+    )
+}
+
+fn env_f64(name: &str, default: f64) -> f64 {
+    std::env::var(name)
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(default)
+}
+
+/// One localized stream's figures.
+struct StreamResult {
+    localized: usize,
+    frames: usize,
+    over_5cm: usize,
+    median_mm: f64,
+}
+
 fn end_to_end() {
-    use kiwi_backend::vision::align::{trajectory_error, umeyama};
+    use kiwi_backend::vision::align::{Sim3, trajectory_error, umeyama};
     use kiwi_backend::vision::episode::{LensStream, build_map, localize_stream};
     use kiwi_backend::vision::localize::LocalizerOptions;
+    use kiwi_backend::vision::map::VisualMap;
     use kiwi_fixtures::scenario::Scenario;
     use kiwi_fixtures::session::{SessionOptions, write_session};
 
-    let seconds: f64 = std::env::var("KIWI_BENCH_VISION_SECONDS")
-        .ok()
-        .and_then(|s| s.parse().ok())
-        .unwrap_or(1.0);
-    let dir = tempfile::tempdir().unwrap();
-    let write = |name: &str, scenario: Scenario| {
-        let mut o = SessionOptions::new(dir.path().join(name));
+    // Mapping episode length, and the tabletop and walk episodes' length (s).
+    let seconds = env_f64("KIWI_BENCH_VISION_SECONDS", 1.0);
+    let query_seconds = env_f64("KIWI_BENCH_VISION_QUERY_SECONDS", seconds);
+    // Sessions are rendered once into KIWI_BENCH_VISION_DIR (if set) and reused from there.
+    let tmp = tempfile::tempdir().unwrap();
+    let root = std::env::var("KIWI_BENCH_VISION_DIR")
+        .map_or_else(|_| tmp.path().to_path_buf(), std::path::PathBuf::from);
+    let write = |name: &str, scenario: Scenario, duration_s: f64| {
+        let out = root.join(name);
+        let episode = out.join("episodes").join("ep000");
+        if out.join("session.toml").is_file() && out.join("done").is_file() {
+            println!("  reusing {name} session in {}", out.display());
+            return episode;
+        }
+        let mut o = SessionOptions::new(&out);
         o.seed = 7;
         o.scenario = scenario;
-        o.duration_s = seconds;
+        o.duration_s = duration_s;
         o.resolution = 960;
         o.rate_hz = 30.0;
         o.blur_samples = 2;
         o.head = false;
         let s = Instant::now();
         write_session(&o).unwrap();
+        std::fs::write(out.join("done"), b"").unwrap();
         println!(
-            "  simulated {name} session ({seconds} s at 30 Hz, 960 px, blur): {:.0} s",
+            "  simulated {name} session ({duration_s} s at 30 Hz, 960 px, blur 2, noise 2 DN, \
+             rolling shutter): {:.0} s",
             s.elapsed().as_secs_f64()
         );
-        dir.path().join(name).join("episodes").join("ep000")
+        episode
     };
-    println!("end to end at 960x960 (one thread):");
-    let mapping = write("mapping", Scenario::Mapping);
-    let tabletop = write("tabletop", Scenario::Tabletop);
+    println!(
+        "end to end at 960x960 (seed 7; vision on one thread, images decoded on another; \
+         frames/s per core = frames / CPU seconds of the process):"
+    );
+    let mapping = write("mapping", Scenario::Mapping, seconds);
+    let queries = [
+        (
+            "tabletop",
+            write("tabletop", Scenario::Tabletop, query_seconds),
+        ),
+        ("walk", write("walk", Scenario::Walk, query_seconds)),
+    ];
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(1)
         .build()
         .unwrap();
-    for lens in ["front", "rear"] {
-        let stream = LensStream::open(&mapping, "left", lens, None, None).unwrap();
+    // A front map per wrist and the left rear map shared by both wrists (paper §4.2).
+    let mut maps: Vec<(String, String, VisualMap, Sim3)> = Vec::new();
+    for (camera, lens) in [("left", "front"), ("right", "front"), ("left", "rear")] {
+        let mut stream = LensStream::open(&mapping, camera, lens, None, None).unwrap();
+        // The mapper keyframes too eagerly on a slow sweep filmed at 30 Hz (see docs/vision.md):
+        // KIWI_BENCH_VISION_MAP_STRIDE feeds it every n-th frame.
+        let stride = env_f64("KIWI_BENCH_VISION_MAP_STRIDE", 1.0).max(1.0) as usize;
+        stream.frames = stream.frames.iter().step_by(stride).cloned().collect();
+        let cpu0 = cpu_now();
         let (map, summary) = pool.install(|| build_map(&stream, &mut |_, _| {})).unwrap();
-        let rows = truth(&mapping, "left", lens);
+        let cpu = cpu_now().0 - cpu0.0;
+        let rows = truth(&mapping, camera, lens);
         let est: Vec<Vector3<f64>> = map
             .keyframes
             .iter()
@@ -121,49 +187,120 @@ fn end_to_end() {
         let sim = umeyama(&est, &tru, true).unwrap();
         let ate = trajectory_error(&sim, &est, &tru).unwrap();
         println!(
-            "  map left {lens}: {} of {} frames, {} keyframes, {} landmarks, {:.1} s; keyframe \
-             ATE {:.2} mm = {:.3} % of the extent",
+            "  map {camera} {lens} (every {stride}. frame): {} of {} frames{}, {} keyframes, {} landmarks, {:.1} s wall, \
+             {cpu:.1} s CPU; keyframe ATE {:.2} mm = {:.3} % of the extent ({:.2} m) [criterion \
+             < 0.5 %: {}]",
             summary.frames_tracked,
             summary.frames,
+            summary
+                .lost_at
+                .map_or_else(String::new, |f| format!(" (lost at frame {f})")),
             summary.keyframes,
             summary.landmarks,
             summary.seconds,
             ate.rmse * 1e3,
-            100.0 * ate.relative_rmse()
+            100.0 * ate.relative_rmse(),
+            ate.extent,
+            if ate.relative_rmse() < 0.005 {
+                "pass"
+            } else {
+                "FAIL"
+            }
         );
-        for camera in ["left", "right"] {
-            let query = LensStream::open(&tabletop, camera, lens, None, None).unwrap();
-            let (results, s) = pool
-                .install(|| {
-                    localize_stream(&map, &query, &LocalizerOptions::default(), &mut |_, _| {})
-                })
-                .unwrap();
-            let rows = truth(&tabletop, camera, lens);
-            let mut e: Vec<f64> = results
-                .iter()
-                .filter_map(|r| {
-                    r.map_from_cam.map(|p| {
-                        (sim.transform_point(&p.translation.vector) - at(&rows, r.t)).norm()
-                    })
-                })
-                .collect();
-            e.sort_by(f64::total_cmp);
-            println!(
-                "  localize {camera} {lens} in the left {lens} map: {}/{} = {:.2} % ({} \
-                 relocalized), median {} inliers, error median {:.1} mm, worst {:.1} mm, {} \
-                 over 5 cm; {:.1} frames/s per core",
-                s.localized,
-                s.frames,
-                100.0 * s.localized_fraction,
-                s.relocalized,
-                s.median_inliers,
-                e.get(e.len() / 2).copied().unwrap_or(f64::NAN) * 1e3,
-                e.last().copied().unwrap_or(f64::NAN) * 1e3,
-                e.iter().filter(|&&x| x > 0.05).count(),
-                s.frames_per_second
-            );
-        }
+        maps.push((camera.into(), lens.into(), map, sim));
     }
+    let map_of = |camera: &str, lens: &str| {
+        maps.iter()
+            .find(|m| m.0 == camera && m.1 == lens)
+            .map(|m| (&m.2, &m.3))
+            .unwrap()
+    };
+    let run = |episode: &std::path::Path, camera: &str, lens: &str, map_camera: &str| {
+        let (map, sim) = map_of(map_camera, lens);
+        let query = LensStream::open(episode, camera, lens, None, None).unwrap();
+        let cpu0 = cpu_now();
+        let (results, s) = pool
+            .install(|| localize_stream(map, &query, &LocalizerOptions::default(), &mut |_, _| {}))
+            .unwrap();
+        let cpu1 = cpu_now();
+        let rows = truth(episode, camera, lens);
+        let mut e: Vec<f64> = results
+            .iter()
+            .filter_map(|r| {
+                r.map_from_cam
+                    .map(|p| (sim.transform_point(&p.translation.vector) - at(&rows, r.t)).norm())
+            })
+            .collect();
+        e.sort_by(f64::total_cmp);
+        let median_mm = e.get(e.len() / 2).copied().unwrap_or(f64::NAN) * 1e3;
+        let over_5cm = e.iter().filter(|&&x| x > 0.05).count();
+        let n = s.frames as f64;
+        println!(
+            "    {camera} {lens} in the {map_camera} {lens} map: {}/{} = {:.2} % ({} \
+             relocalized), median {} inliers, error median {median_mm:.1} mm, worst {:.1} mm, \
+             {over_5cm} over 5 cm; {:.1} frames/s wall, {:.1} frames/s per core (vision thread \
+             alone {:.1})",
+            s.localized,
+            s.frames,
+            100.0 * s.localized_fraction,
+            s.relocalized,
+            s.median_inliers,
+            e.last().copied().unwrap_or(f64::NAN) * 1e3,
+            s.frames_per_second,
+            n / (cpu1.0 - cpu0.0),
+            n / (cpu1.1 - cpu0.1),
+        );
+        StreamResult {
+            localized: s.localized,
+            frames: s.frames,
+            over_5cm,
+            median_mm,
+        }
+    };
+    let (mut front, mut rear, mut wrong, mut medians) = ((0, 0), (0, 0), 0, Vec::new());
+    for (name, episode) in &queries {
+        println!("  {name} episode:");
+        for (camera, lens) in [
+            ("left", "front"),
+            ("right", "front"),
+            ("left", "rear"),
+            ("right", "rear"),
+        ] {
+            let map_camera = if lens == "rear" { "left" } else { camera };
+            let r = run(episode, camera, lens, map_camera);
+            let acc = if lens == "rear" {
+                &mut rear
+            } else {
+                &mut front
+            };
+            acc.0 += r.localized;
+            acc.1 += r.frames;
+            wrong += r.over_5cm;
+            if r.median_mm.is_finite() {
+                medians.push(r.median_mm);
+            }
+        }
+        println!("    cross-hand:");
+        let r = run(episode, "right", "front", "left");
+        wrong += r.over_5cm;
+    }
+    medians.sort_by(f64::total_cmp);
+    let pct = |a: (usize, usize)| 100.0 * a.0 as f64 / a.1.max(1) as f64;
+    println!(
+        "  acceptance: rear {:.2} % localized [>= 99.9 %: {}], front {:.2} % [>= 99 %: {}], \
+         worst per-stream median error {:.1} mm [< 10 mm: {}], {wrong} poses over 5 cm [0: {}]",
+        pct(rear),
+        if pct(rear) >= 99.9 { "pass" } else { "FAIL" },
+        pct(front),
+        if pct(front) >= 99.0 { "pass" } else { "FAIL" },
+        medians.last().copied().unwrap_or(f64::NAN),
+        if medians.last().is_some_and(|&m| m < 10.0) {
+            "pass"
+        } else {
+            "FAIL"
+        },
+        if wrong == 0 { "pass" } else { "FAIL" },
+    );
 }
 
 fn main() {

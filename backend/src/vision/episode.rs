@@ -29,7 +29,8 @@ use crate::vision::localize::{
 use crate::vision::map::VisualMap;
 use crate::vision::mapping::{MapperOptions, reconstruct};
 
-/// Frames decoded ahead per parallel batch: enough to keep two cores busy, small in memory.
+/// Frames decoded ahead (one parallel batch, and the queue to the vision thread): enough to
+/// keep two cores busy, small in memory.
 const DECODE_BATCH: usize = 16;
 /// Angle of one pixel at the centre of the 960 px X5 lens the mapper's defaults are tuned for.
 const REFERENCE_PIXEL_ANGLE_RAD: f64 = 1.0 / 290.0;
@@ -171,28 +172,44 @@ impl LensStream {
         GrayImage::load(&self.frame_path(i))
     }
 
-    /// Decode frames `range` in parallel (order kept).
-    fn load_batch(&self, range: std::ops::Range<usize>) -> Result<Vec<GrayImage>> {
-        range
-            .into_par_iter()
-            .map(|i| self.load(i))
-            .collect::<Vec<_>>()
-            .into_iter()
-            .collect()
-    }
-
-    /// Call `f(index, image)` for every frame in order, decoding ahead in parallel batches.
+    /// Call `f(index, image)` for every frame in order. Images are decoded ahead on another
+    /// thread (in parallel batches through rayon) while `f` runs, so decoding overlaps the
+    /// vision; `f` still sees every frame in order, so results do not depend on the thread
+    /// count. Stops at the first error (decoding or `f`).
     pub fn for_each_frame(&self, mut f: impl FnMut(usize, GrayImage) -> Result<()>) -> Result<()> {
         let n = self.frames.len();
-        let mut start = 0;
-        while start < n {
-            let end = (start + DECODE_BATCH).min(n);
-            for (k, img) in self.load_batch(start..end)?.into_iter().enumerate() {
-                f(start + k, img)?;
+        // A caller inside a one-thread rayon pool (`--threads 1`) gets one decoding thread.
+        let parallel = rayon::current_num_threads() > 1;
+        let (tx, rx) = std::sync::mpsc::sync_channel::<Result<GrayImage>>(DECODE_BATCH);
+        std::thread::scope(|scope| {
+            scope.spawn(move || {
+                let mut start = 0;
+                while start < n {
+                    let end = (start + DECODE_BATCH).min(n);
+                    let batch: Vec<Result<GrayImage>> = if parallel {
+                        (start..end).into_par_iter().map(|i| self.load(i)).collect()
+                    } else {
+                        (start..end).map(|i| self.load(i)).collect()
+                    };
+                    for img in batch {
+                        let failed = img.is_err();
+                        // The receiver hangs up after an error of `f`: stop decoding.
+                        if tx.send(img).is_err() || failed {
+                            return;
+                        }
+                    }
+                    start = end;
+                }
+            });
+            for i in 0..n {
+                let img = rx.recv().map_err(|_| BackendError::Vision {
+                    context: "image decoding".into(),
+                    message: format!("the decoding thread stopped before frame {i}"),
+                })??;
+                f(i, img)?;
             }
-            start = end;
-        }
-        Ok(())
+            Ok(())
+        })
     }
 }
 

@@ -69,8 +69,43 @@ impl GrayImage {
         Self::new(width, height, data)
     }
 
-    /// Read an image file (PNG, JPEG, …) as grayscale.
+    /// Read an image file (PNG, JPEG, …) as grayscale (BT.601 luma of colour images).
+    ///
+    /// PNG and JPEG decode through the `image` crate (its PNG inflater is ~2× faster than
+    /// libpng's zlib on the prepared episodes' frames); other formats go through OpenCV.
     pub fn load(path: &Path) -> Result<Self> {
+        let ext = path
+            .extension()
+            .map(|e| e.to_string_lossy().to_ascii_lowercase())
+            .unwrap_or_default();
+        if matches!(ext.as_str(), "png" | "jpg" | "jpeg") {
+            let input_err = |e: &dyn std::fmt::Display| BackendError::Input {
+                path: path.to_path_buf(),
+                message: format!(
+                    "cannot read the image ({e}); check the path in frames.csv and that the file \
+                     is a complete {ext} image"
+                ),
+            };
+            let decoded = image::ImageReader::open(path)
+                .map_err(|e| input_err(&e))?
+                .with_guessed_format()
+                .map_err(|e| input_err(&e))?
+                .decode()
+                .map_err(|e| input_err(&e))?;
+            return match decoded {
+                image::DynamicImage::ImageLuma8(g) => {
+                    let (w, h) = g.dimensions();
+                    Self::new(w, h, g.into_raw())
+                }
+                image::DynamicImage::ImageRgb8(rgb) => {
+                    Self::from_rgb(rgb.width(), rgb.height(), rgb.as_raw())
+                }
+                other => {
+                    let rgb = other.to_rgb8();
+                    Self::from_rgb(rgb.width(), rgb.height(), rgb.as_raw())
+                }
+            };
+        }
         let mat =
             opencv::imgcodecs::imread(path, opencv::imgcodecs::IMREAD_GRAYSCALE).map_err(|e| {
                 BackendError::Input {
@@ -298,40 +333,136 @@ impl OrbExtractor {
             }
         }
         .map_err(cv_err("ORB"))?;
-        let mut out: Vec<(Keypoint, Descriptor)> = Vec::with_capacity(keypoints.len());
-        for (i, kp) in keypoints.iter().enumerate() {
-            let p = kp.pt();
-            let pixel = Point2::new(f64::from(p.x), f64::from(p.y));
-            let Some(bearing) = camera.unproject(&pixel) else {
-                continue;
-            };
-            let row = desc
-                .at_row::<u8>(i as i32)
-                .map_err(cv_err("ORB descriptors"))?;
-            if row.len() < 32 {
+        let mut out = Vec::with_capacity(keypoints.len());
+        collect_keypoints(&keypoints, &desc, (0, 0), None, camera, &mut out)?;
+        Ok(sorted_features(out))
+    }
+
+    /// Like [`OrbExtractor::extract`], but only inside the given pixel rectangles
+    /// `[x0, y0, x1, y1)`: each is detected on its own crop (grown by ORB's patch border, so
+    /// descriptors near the rectangle's edge see real pixels), which costs roughly the crops'
+    /// share of the image instead of a full-frame pyramid. Each rectangle keeps at most
+    /// `max_features` scaled by its share of the image area.
+    pub fn extract_in_rects(
+        &mut self,
+        image: &GrayImage,
+        mask: &Mask,
+        camera: &dyn CameraModel,
+        rects: &[[u32; 4]],
+    ) -> Result<FrameFeatures> {
+        let (w, h) = camera.resolution();
+        if (w, h) != (image.width, image.height) || (mask.width, mask.height) != (w, h) {
+            return Err(BackendError::Vision {
+                context: "ORB".into(),
+                message: format!(
+                    "image {}x{} and mask {}x{} must both be the calibrated {w}x{h}",
+                    image.width, image.height, mask.width, mask.height
+                ),
+            });
+        }
+        let img = image.as_mat()?;
+        let mm = mask.as_mat()?;
+        let full = self.orb.get_max_features().map_err(cv_err("ORB"))?;
+        let area = f64::from(w) * f64::from(h);
+        let border = ORB_PATCH as u32 + 1;
+        let mut out = Vec::new();
+        for r in rects {
+            let (x0, y0) = (r[0].min(w), r[1].min(h));
+            let (x1, y1) = (r[2].min(w), r[3].min(h));
+            if x1 <= x0 || y1 <= y0 {
                 continue;
             }
-            out.push((
-                Keypoint {
-                    pixel,
-                    bearing: bearing.into_inner(),
-                    octave: kp.octave(),
-                    response: kp.response(),
-                },
-                Descriptor::from_bytes(&row[..32]),
-            ));
+            let (cx0, cy0) = (x0.saturating_sub(border), y0.saturating_sub(border));
+            let (cx1, cy1) = ((x1 + border).min(w), (y1 + border).min(h));
+            let roi = opencv::core::Rect::new(
+                cx0 as i32,
+                cy0 as i32,
+                (cx1 - cx0) as i32,
+                (cy1 - cy0) as i32,
+            );
+            let crop = Mat::roi(&img, roi).map_err(cv_err("ORB crop"))?;
+            let crop_mask = Mat::roi(&mm, roi).map_err(cv_err("ORB crop"))?;
+            let share = f64::from((x1 - x0) * (y1 - y0)) / area;
+            let budget = (f64::from(full) * share * RECT_FEATURE_SURPLUS).ceil() as i32;
+            self.orb
+                .set_max_features(budget.max(MIN_RECT_FEATURES))
+                .map_err(cv_err("ORB"))?;
+            let mut keypoints = Vector::<KeyPoint>::new();
+            let mut desc = Mat::default();
+            let run =
+                self.orb
+                    .detect_and_compute(&crop, &crop_mask, &mut keypoints, &mut desc, false);
+            self.orb.set_max_features(full).map_err(cv_err("ORB"))?;
+            run.map_err(cv_err("ORB"))?;
+            let inner = [f64::from(x0), f64::from(y0), f64::from(x1), f64::from(y1)];
+            collect_keypoints(&keypoints, &desc, (cx0, cy0), Some(inner), camera, &mut out)?;
         }
-        out.sort_by(|a, b| {
-            b.0.response
-                .total_cmp(&a.0.response)
-                .then(a.0.pixel.y.total_cmp(&b.0.pixel.y))
-                .then(a.0.pixel.x.total_cmp(&b.0.pixel.x))
-        });
-        let (keypoints, descriptors) = out.into_iter().unzip();
-        Ok(FrameFeatures {
-            keypoints,
-            descriptors,
-        })
+        Ok(sorted_features(out))
+    }
+}
+
+/// A crop's ORB keypoints beyond its share of the full-frame budget: crops are small and their
+/// strongest corners cluster, so allow a little more.
+const RECT_FEATURE_SURPLUS: f64 = 1.5;
+/// Fewest keypoints asked of one crop.
+const MIN_RECT_FEATURES: i32 = 40;
+
+/// Keypoints (offset by a crop's origin, kept inside `inner` if given, inside the image circle)
+/// with their descriptors.
+fn collect_keypoints(
+    keypoints: &Vector<KeyPoint>,
+    desc: &Mat,
+    origin: (u32, u32),
+    inner: Option<[f64; 4]>,
+    camera: &dyn CameraModel,
+    out: &mut Vec<(Keypoint, Descriptor)>,
+) -> Result<()> {
+    for (i, kp) in keypoints.iter().enumerate() {
+        let p = kp.pt();
+        let pixel = Point2::new(
+            f64::from(p.x) + f64::from(origin.0),
+            f64::from(p.y) + f64::from(origin.1),
+        );
+        if let Some([x0, y0, x1, y1]) = inner
+            && !(pixel.x >= x0 && pixel.x < x1 && pixel.y >= y0 && pixel.y < y1)
+        {
+            continue;
+        }
+        let Some(bearing) = camera.unproject(&pixel) else {
+            continue;
+        };
+        let row = desc
+            .at_row::<u8>(i as i32)
+            .map_err(cv_err("ORB descriptors"))?;
+        if row.len() < 32 {
+            continue;
+        }
+        out.push((
+            Keypoint {
+                pixel,
+                bearing: bearing.into_inner(),
+                octave: kp.octave(),
+                response: kp.response(),
+            },
+            Descriptor::from_bytes(&row[..32]),
+        ));
+    }
+    Ok(())
+}
+
+/// Sorted by response (strongest first, ties by position), so the order does not depend on
+/// OpenCV's internal ordering.
+fn sorted_features(mut out: Vec<(Keypoint, Descriptor)>) -> FrameFeatures {
+    out.sort_by(|a, b| {
+        b.0.response
+            .total_cmp(&a.0.response)
+            .then(a.0.pixel.y.total_cmp(&b.0.pixel.y))
+            .then(a.0.pixel.x.total_cmp(&b.0.pixel.x))
+    });
+    let (keypoints, descriptors) = out.into_iter().unzip();
+    FrameFeatures {
+        keypoints,
+        descriptors,
     }
 }
 

@@ -35,7 +35,7 @@ use crate::vision::features::{
     Descriptor, FrameFeatures, GrayImage, KltOptions, KltPyramid, Mask, MatchOptions, OrbExtractor,
     OrbOptions, match_descriptors, track_klt_pyramids,
 };
-use crate::vision::geometry::{RansacOptions, absolute_pose_ransac};
+use crate::vision::geometry::{RansacOptions, absolute_pose_ransac, angular_error};
 use crate::vision::map::VisualMap;
 use crate::vision::place::KeyframeDatabase;
 
@@ -94,8 +94,22 @@ pub struct LocalizerOptions {
     pub min_spread_rad: f64,
     /// Correspondences tracked from frame to frame.
     pub target_tracks: usize,
-    /// Below this share of the target, guided matching tops the correspondences up.
+    /// Guided matching tops the correspondences up when fewer than this share of those held
+    /// after the last top-up are still carried.
     pub replenish_ratio: f64,
+    /// ... or when fewer than this many are carried.
+    pub min_carried: usize,
+    /// A tracked correspondence is carried to the next frame only while its reprojection error
+    /// under the frame's pose stays within this (px at the image centre).
+    pub carry_px: f64,
+    /// Cells per image side of the top-up grid: ORB runs only in cells that hold fewer than
+    /// `cell_min_tracks` carried points but where at least `cell_min_candidates` untracked map
+    /// landmarks project.
+    pub topup_grid: u32,
+    /// See `topup_grid`.
+    pub cell_min_tracks: usize,
+    /// See `topup_grid`.
+    pub cell_min_candidates: usize,
     /// Search radius of guided matching (px).
     pub guided_radius_px: f64,
     /// Keyframes nearest to the pose whose landmarks guided matching projects.
@@ -130,7 +144,18 @@ impl Default for LocalizerOptions {
             min_spread_rad: 0.1,
             // ~200 well spread points are plenty for P3P; fewer keep KLT cheap.
             target_tracks: 200,
-            replenish_ratio: 0.6,
+            // Top up once a third of the support is gone (not every frame: ORB is the
+            // most expensive step of a tracked frame).
+            replenish_ratio: 0.67,
+            // Twice the acceptance minimum: keeps a margin before a frame is refused.
+            min_carried: 60,
+            // KLT drift accumulates over frames; a track more than ~1 px off its landmark's
+            // projection is dropped (a fresh guided match replaces it).
+            carry_px: 1.0,
+            // 4 × 4 cells of 240 px at 960 px: small crops, few of them per top-up.
+            topup_grid: 4,
+            cell_min_tracks: 8,
+            cell_min_candidates: 6,
             // KLT drift plus pose error over one frame at 120 Hz stays within a few pixels.
             guided_radius_px: 6.0,
             guided_keyframes: 4,
@@ -203,6 +228,8 @@ struct TrackState {
     pyramid: KltPyramid,
     points: Vec<(u32, Point2<f64>)>,
     cam_from_map: Pose,
+    /// Correspondences carried right after the last top-up (or relocalization).
+    baseline: usize,
 }
 
 /// Localizes the frames of one lens stream, in order, against a frozen map.
@@ -459,8 +486,15 @@ impl Localizer {
         let mut best_rejected = 0;
         if let Some(state) = self.state.take() {
             match self.track(frame, image, &pyramid, &state, &mut features)? {
-                Ok(e) => {
-                    return Ok(self.finish(frame, t, &e, pyramid, LocalizationStatus::Tracked));
+                Ok((e, baseline)) => {
+                    return Ok(self.finish(
+                        frame,
+                        t,
+                        &e,
+                        pyramid,
+                        LocalizationStatus::Tracked,
+                        baseline,
+                    ));
                 }
                 Err((why, n)) => {
                     reason = format!("tracking: {why}");
@@ -473,7 +507,14 @@ impl Localizer {
             None => self.orb.extract(image, Some(&self.mask), &self.camera)?,
         };
         match self.relocalize(frame, &feats) {
-            Ok(e) => Ok(self.finish(frame, t, &e, pyramid, LocalizationStatus::Relocalized)),
+            Ok(e) => Ok(self.finish(
+                frame,
+                t,
+                &e,
+                pyramid,
+                LocalizationStatus::Relocalized,
+                usize::MAX,
+            )),
             Err((why, n)) => {
                 let reason = if reason.is_empty() {
                     format!("relocalization: {why}")
@@ -492,6 +533,8 @@ impl Localizer {
         }
     }
 
+    /// Output an accepted pose and carry its well-fitting inliers to the next frame;
+    /// `baseline` is the carried count after the last top-up (`usize::MAX`: this frame's).
     fn finish(
         &mut self,
         frame: u32,
@@ -499,18 +542,30 @@ impl Localizer {
         e: &Estimate,
         pyramid: KltPyramid,
         status: LocalizationStatus,
+        baseline: usize,
     ) -> FrameLocalization {
         let inliers = e.inliers.len();
-        let points = e
+        let carry_rad = self.options.carry_px / self.options.threshold_px * self.threshold_rad;
+        let points: Vec<(u32, Point2<f64>)> = e
             .inliers
             .iter()
+            .filter(|c| {
+                let pc = e.cam_from_map * Point3::from(self.positions[c.landmark as usize]);
+                angular_error(&c.bearing, &pc.coords) <= carry_rad
+            })
             .take(self.options.target_tracks)
             .map(|c| (c.landmark, c.pixel))
             .collect();
+        let baseline = if baseline == usize::MAX {
+            points.len()
+        } else {
+            baseline
+        };
         self.state = Some(TrackState {
             pyramid,
             points,
             cam_from_map: e.cam_from_map,
+            baseline,
         });
         FrameLocalization {
             frame,
@@ -522,7 +577,8 @@ impl Localizer {
         }
     }
 
-    /// Tracking with the motion prior; `Err((reason, inliers))` when rejected.
+    /// Tracking with the motion prior: the estimate and the carried-count baseline, or
+    /// `Err((reason, inliers))` when rejected.
     #[allow(clippy::type_complexity)]
     fn track(
         &mut self,
@@ -531,7 +587,7 @@ impl Localizer {
         pyramid: &KltPyramid,
         state: &TrackState,
         features: &mut Option<FrameFeatures>,
-    ) -> Result<std::result::Result<Estimate, (String, usize)>> {
+    ) -> Result<std::result::Result<(Estimate, usize), (String, usize)>> {
         let pixels: Vec<Point2<f64>> = state.points.iter().map(|p| p.1).collect();
         let tracks = track_klt_pyramids(
             &state.pyramid,
@@ -555,7 +611,10 @@ impl Localizer {
             .collect();
         let ransac = self.ransac(frame, 1, self.options.min_inliers);
         let first = self.estimate(&corr, &ransac);
-        let enough = (self.options.replenish_ratio * self.options.target_tracks as f64).ceil();
+        let enough = (self.options.replenish_ratio * state.baseline as f64)
+            .max(self.options.min_carried as f64)
+            .min(self.options.replenish_ratio * self.options.target_tracks as f64)
+            .ceil();
         let needs_more = match &first {
             Ok(e) => {
                 (e.inliers.len() as f64) < enough || self.accept(e, ransac.min_inliers).is_err()
@@ -563,32 +622,97 @@ impl Localizer {
             Err(_) => true,
         };
         if !needs_more && let Ok(e) = first {
-            return Ok(Ok(e));
+            return Ok(Ok((e, state.baseline)));
         }
         // Guided top-up around the estimated pose (or the previous one).
         let pose = match &first {
             Ok(e) => e.cam_from_map,
             Err(_) => state.cam_from_map,
         };
-        let feats = self.orb.extract(image, Some(&self.mask), &self.camera)?;
-        let grid = KeypointGrid::new(&feats.keypoints, self.options.guided_radius_px);
         let tracked: BTreeSet<u32> = corr.iter().map(|c| c.landmark).collect();
         let candidates: Vec<u32> = self
             .nearby_landmarks(&pose, self.options.guided_keyframes)
             .into_iter()
             .filter(|l| !tracked.contains(l))
             .collect();
+        let feats = match &first {
+            // With a pose, ORB runs only where landmarks wait to be matched and few are held.
+            Ok(e) => {
+                let rects = self.topup_cells(&pose, &candidates, &e.inliers);
+                self.orb
+                    .extract_in_rects(image, &self.mask, &self.camera, &rects)?
+            }
+            // Without one the whole frame is described (and reused if relocalization follows).
+            Err(_) => self.orb.extract(image, Some(&self.mask), &self.camera)?,
+        };
+        let grid = KeypointGrid::new(&feats.keypoints, self.options.guided_radius_px);
         let mut all = corr;
         all.extend(self.guided_matches(&pose, &candidates, &feats, &grid));
-        *features = Some(feats);
+        if first.is_err() {
+            *features = Some(feats);
+        }
         let e = match self.estimate(&all, &self.ransac(frame, 2, ransac.min_inliers)) {
             Ok(e) => e,
             Err(why) => return Ok(Err((why, 0))),
         };
         match self.accept(&e, ransac.min_inliers) {
-            Ok(()) => Ok(Ok(e)),
+            Ok(()) => Ok(Ok((e, usize::MAX))),
             Err(why) => Ok(Err((why, e.inliers.len()))),
         }
+    }
+
+    /// Pixel rectangles of the top-up grid cells that hold fewer than `cell_min_tracks` of the
+    /// current inliers and into which at least `cell_min_candidates` untracked landmarks
+    /// project (in row-major cell order).
+    fn topup_cells(
+        &self,
+        cam_from_map: &Pose,
+        candidates: &[u32],
+        inliers: &[Correspondence],
+    ) -> Vec<[u32; 4]> {
+        let (w, h) = self.camera.resolution();
+        let g = self.options.topup_grid.max(1);
+        let (cw, ch) = (w.div_ceil(g), h.div_ceil(g));
+        let cell = |p: &Point2<f64>| -> Option<usize> {
+            if p.x < 0.0 || p.y < 0.0 {
+                return None;
+            }
+            let (cx, cy) = ((p.x as u32) / cw, (p.y as u32) / ch);
+            (cx < g && cy < g).then_some((cy * g + cx) as usize)
+        };
+        let mut held = vec![0usize; (g * g) as usize];
+        let mut waiting = vec![0usize; (g * g) as usize];
+        for c in inliers {
+            if let Some(k) = cell(&c.pixel) {
+                held[k] += 1;
+            }
+        }
+        let cos_max = (0.5 * self.camera.valid_fov()).cos();
+        for &l in candidates {
+            let pc = (cam_from_map * Point3::from(self.positions[l as usize])).coords;
+            let n = pc.norm();
+            if n <= 0.0 || pc.z / n < cos_max {
+                continue;
+            }
+            if let Some(k) = self.camera.project(&pc).as_ref().and_then(cell) {
+                waiting[k] += 1;
+            }
+        }
+        (0..g * g)
+            .filter(|&k| {
+                held[k as usize] < self.options.cell_min_tracks
+                    && waiting[k as usize] >= self.options.cell_min_candidates
+            })
+            .map(|k| {
+                let (cx, cy) = (k % g, k / g);
+                [
+                    cx * cw,
+                    cy * ch,
+                    ((cx + 1) * cw).min(w),
+                    ((cy + 1) * ch).min(h),
+                ]
+            })
+            .collect()
     }
 
     /// Global relocalization by place recognition; `Err((reason, inliers))` when rejected.
