@@ -15,7 +15,8 @@ use crate::target::{AprilGridTarget, aruco_svg};
 /// `kiwi-calib target`: print-ready targets.
 #[derive(Debug, clap::Subcommand)]
 pub enum TargetCommand {
-    /// A Kalibr aprilgrid board (SVG) and its Kalibr target yaml (same name, .yaml).
+    /// A Kalibr aprilgrid board (SVG and PDF, 1 : 1) and its Kalibr target yaml (same name,
+    /// .yaml).
     Aprilgrid {
         /// Tags along the board's x axis.
         #[arg(long, default_value_t = 6)]
@@ -29,7 +30,8 @@ pub enum TargetCommand {
         /// Gap between tags divided by the tag size.
         #[arg(long, default_value_t = 0.3)]
         spacing: f64,
-        /// The SVG to write; the target yaml goes beside it.
+        /// The SVG to write (a PDF and the target yaml go beside it); a `.pdf` name writes
+        /// only the PDF and the yaml.
         #[arg(long)]
         out: PathBuf,
     },
@@ -131,10 +133,21 @@ pub fn run_target(cmd: &TargetCommand) -> Result<Vec<PathBuf>> {
             out,
         } => {
             let t = AprilGridTarget::new(*cols, *rows, *tag_size, *spacing)?;
-            write_atomic(out, t.to_svg()?.as_bytes())?;
+            let is_pdf = out
+                .extension()
+                .is_some_and(|e| e.eq_ignore_ascii_case("pdf"));
+            let mut files = Vec::new();
+            if !is_pdf {
+                write_atomic(out, t.to_svg()?.as_bytes())?;
+                files.push(out.clone());
+            }
+            let pdf = out.with_extension("pdf");
+            write_atomic(&pdf, &t.to_pdf()?)?;
+            files.push(pdf);
             let yaml = svg_yaml_path(out);
             write_atomic(&yaml, t.to_kalibr_yaml().as_bytes())?;
-            Ok(vec![out.clone(), yaml])
+            files.push(yaml);
+            Ok(files)
         }
         TargetCommand::Aruco {
             dict,

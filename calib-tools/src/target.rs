@@ -234,9 +234,9 @@ impl AprilGridTarget {
         )
     }
 
-    /// A print-ready SVG of the board at 1 : 1 (millimetres), tag 0 at the bottom-left as in
-    /// Kalibr's PDF, with a white quiet zone and a caption.
-    pub fn to_svg(&self) -> Result<String> {
+    /// The board as black rectangles on a page (millimetres, 1 : 1), tag 0 at the bottom-left
+    /// as in Kalibr's PDF, with a white quiet zone and a caption.
+    pub fn drawing(&self) -> Result<Drawing> {
         let table = code_table(APRILTAG_36H11_JSON, "AprilTag 36h11")?;
         if table.marker_bits != 6 || table.codes.len() < self.tag_count() {
             return Err(CalibError::Internal(
@@ -254,39 +254,22 @@ impl AprilGridTarget {
         // Black pattern: x ∈ [−g, C·p], y ∈ [−g, R·p] (board frame, y up).
         let (pw, ph) = (self.cols as f64 * p + g, self.rows as f64 * p + g);
         let (w, h) = (pw + 2.0 * margin, ph + 2.0 * margin + caption_h);
-        // SVG y runs down: board (x, y) → (x + g + margin, margin + ph − (y + g)).
+        // The page's y runs down: board (x, y) → (x + g + margin, margin + ph − (y + g)).
         let ox = g + margin;
         let oy = margin + ph - g;
-        let mut s = String::new();
-        let _ = writeln!(
-            s,
-            "<?xml version=\"1.0\" encoding=\"UTF-8\"?>\n<svg xmlns=\"http://www.w3.org/2000/svg\" \
-             width=\"{w:.3}mm\" height=\"{h:.3}mm\" viewBox=\"0 0 {w:.3} {h:.3}\">"
-        );
-        let _ = writeln!(
-            s,
-            "<title>Kalibr aprilgrid {}x{} tags, tagSize {} m, tagSpacing {}</title>",
-            self.cols, self.rows, self.tag_size_m, self.spacing
-        );
-        let _ = writeln!(
-            s,
-            "<rect x=\"0\" y=\"0\" width=\"{w:.3}\" height=\"{h:.3}\" fill=\"#ffffff\"/>"
-        );
-        let _ = writeln!(s, "<g fill=\"{INK}\" shape-rendering=\"crispEdges\">");
-        let rect = |s: &mut String, x0: f64, y0: f64, x1: f64, y1: f64| {
-            let _ = writeln!(
-                s,
-                "<rect x=\"{:.4}\" y=\"{:.4}\" width=\"{:.4}\" height=\"{:.4}\"/>",
-                ox + x0,
-                oy - y1,
-                x1 - x0,
-                y1 - y0
-            );
+        let mut rects = Vec::new();
+        let mut rect = |x0: f64, y0: f64, x1: f64, y1: f64| {
+            rects.push(Rect {
+                x: ox + x0,
+                y: oy - y1,
+                w: x1 - x0,
+                h: y1 - y0,
+            });
         };
         for n in 0..=self.rows {
             for c in 0..=self.cols {
                 let (x, y) = (c as f64 * p, n as f64 * p);
-                rect(&mut s, x - g, y - g, x, y);
+                rect(x - g, y - g, x, y);
             }
         }
         let b = t / 10.0;
@@ -308,26 +291,199 @@ impl AprilGridTarget {
                         // is the gap), j from the left; the black square spans cells 1..9.
                         let cx0 = x0 + (j as f64 - 1.0) * b;
                         let cy1 = y0 + t - (i as f64 - 1.0) * b;
-                        rect(&mut s, cx0, cy1 - b, cx0 + b, cy1);
+                        rect(cx0, cy1 - b, cx0 + b, cy1);
                     }
                 }
             }
         }
+        Ok(Drawing {
+            width_mm: w,
+            height_mm: h,
+            title: format!(
+                "Kalibr aprilgrid {}x{} tags, tagSize {} m, tagSpacing {}",
+                self.cols, self.rows, self.tag_size_m, self.spacing
+            ),
+            rects,
+            caption: Caption {
+                x: margin,
+                y: h - 3.0,
+                size: 4.0,
+                text: format!(
+                    "{}x{} tags, size={} cm, spacing={} cm — print at 100 % (actual size); \
+                     measure the black square of a tag and put it in tagSize",
+                    self.cols,
+                    self.rows,
+                    self.tag_size_m * 100.0,
+                    self.spacing * self.tag_size_m * 100.0
+                ),
+            },
+        })
+    }
+
+    /// A print-ready SVG of the board at 1 : 1 (millimetres), see [`AprilGridTarget::drawing`].
+    pub fn to_svg(&self) -> Result<String> {
+        let d = self.drawing()?;
+        let (w, h) = (d.width_mm, d.height_mm);
+        let mut s = String::new();
+        let _ = writeln!(
+            s,
+            "<?xml version=\"1.0\" encoding=\"UTF-8\"?>\n<svg xmlns=\"http://www.w3.org/2000/svg\" \
+             width=\"{w:.3}mm\" height=\"{h:.3}mm\" viewBox=\"0 0 {w:.3} {h:.3}\">"
+        );
+        let _ = writeln!(s, "<title>{}</title>", d.title);
+        let _ = writeln!(
+            s,
+            "<rect x=\"0\" y=\"0\" width=\"{w:.3}\" height=\"{h:.3}\" fill=\"#ffffff\"/>"
+        );
+        let _ = writeln!(s, "<g fill=\"{INK}\" shape-rendering=\"crispEdges\">");
+        for r in &d.rects {
+            let _ = writeln!(
+                s,
+                "<rect x=\"{:.4}\" y=\"{:.4}\" width=\"{:.4}\" height=\"{:.4}\"/>",
+                r.x, r.y, r.w, r.h
+            );
+        }
         let _ = writeln!(s, "</g>");
         let _ = writeln!(
             s,
-            "<text x=\"{:.3}\" y=\"{:.3}\" font-family=\"sans-serif\" font-size=\"4\" \
-             fill=\"#000000\">{}x{} tags, size={} cm, spacing={} cm — print at 100 % (actual \
-             size); measure the black square of a tag and put it in tagSize</text>",
-            margin,
-            h - 3.0,
-            self.cols,
-            self.rows,
-            self.tag_size_m * 100.0,
-            self.spacing * self.tag_size_m * 100.0
+            "<text x=\"{:.3}\" y=\"{:.3}\" font-family=\"sans-serif\" font-size=\"{}\" \
+             fill=\"#000000\">{}</text>",
+            d.caption.x, d.caption.y, d.caption.size, d.caption.text
         );
         let _ = writeln!(s, "</svg>");
         Ok(s)
+    }
+
+    /// A print-ready PDF of the board: one page of exactly the board's physical size.
+    pub fn to_pdf(&self) -> Result<Vec<u8>> {
+        Ok(self.drawing()?.to_pdf())
+    }
+}
+
+/// A black rectangle on a page (mm; `x`, `y` of its top-left corner, y down).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Rect {
+    /// Left edge (mm from the page's left).
+    pub x: f64,
+    /// Top edge (mm from the page's top).
+    pub y: f64,
+    /// Width (mm).
+    pub w: f64,
+    /// Height (mm).
+    pub h: f64,
+}
+
+/// One line of text on a page.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Caption {
+    /// Left end of the baseline (mm from the page's left).
+    pub x: f64,
+    /// Baseline (mm from the page's top).
+    pub y: f64,
+    /// Font size (mm).
+    pub size: f64,
+    /// The text.
+    pub text: String,
+}
+
+/// A printable page: black rectangles on white and a caption, in millimetres at 1 : 1.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Drawing {
+    /// Page width (mm).
+    pub width_mm: f64,
+    /// Page height (mm).
+    pub height_mm: f64,
+    /// Document title.
+    pub title: String,
+    /// The black rectangles.
+    pub rects: Vec<Rect>,
+    /// The caption under the pattern.
+    pub caption: Caption,
+}
+
+/// PostScript points per millimetre (PDF user space: 1/72 inch).
+pub const PT_PER_MM: f64 = 72.0 / 25.4;
+
+/// A PDF string literal's body: ASCII only (the standard Helvetica font has no dash or
+/// accented glyphs in PDF's default encoding), with `\`, `(` and `)` escaped.
+fn pdf_text(text: &str) -> String {
+    let mut out = String::with_capacity(text.len());
+    for ch in text.chars() {
+        match ch {
+            '\\' | '(' | ')' => {
+                out.push('\\');
+                out.push(ch);
+            }
+            '—' | '–' => out.push('-'),
+            c if c.is_ascii() && !c.is_ascii_control() => out.push(c),
+            _ => out.push('?'),
+        }
+    }
+    out
+}
+
+impl Drawing {
+    /// A minimal PDF 1.4 of the drawing: one page whose MediaBox is the drawing's physical size,
+    /// the rectangles as filled paths (vector, exact size when printed at 100 %), the caption
+    /// in Helvetica. Objects: catalog, page tree, page, content stream, font, info.
+    pub fn to_pdf(&self) -> Vec<u8> {
+        let (wp, hp) = (self.width_mm * PT_PER_MM, self.height_mm * PT_PER_MM);
+        let mut content = String::new();
+        // User space in millimetres with y down from the page's top-left, as the drawing.
+        let _ = writeln!(
+            content,
+            "q {PT_PER_MM:.9} 0 0 {:.9} 0 {hp:.4} cm 0 g",
+            -PT_PER_MM
+        );
+        for r in &self.rects {
+            let _ = writeln!(content, "{:.4} {:.4} {:.4} {:.4} re", r.x, r.y, r.w, r.h);
+        }
+        let _ = writeln!(content, "f Q");
+        let c = &self.caption;
+        let _ = writeln!(
+            content,
+            "BT /F1 {:.3} Tf {:.4} {:.4} Td ({}) Tj ET",
+            c.size * PT_PER_MM,
+            c.x * PT_PER_MM,
+            hp - c.y * PT_PER_MM,
+            pdf_text(&c.text)
+        );
+        let objects = [
+            "<< /Type /Catalog /Pages 2 0 R >>".to_string(),
+            "<< /Type /Pages /Kids [3 0 R] /Count 1 >>".to_string(),
+            format!(
+                "<< /Type /Page /Parent 2 0 R /MediaBox [0 0 {wp:.4} {hp:.4}] /Resources << \
+                 /Font << /F1 5 0 R >> >> /Contents 4 0 R >>"
+            ),
+            format!(
+                "<< /Length {} >>\nstream\n{content}endstream",
+                content.len()
+            ),
+            "<< /Type /Font /Subtype /Type1 /BaseFont /Helvetica >>".to_string(),
+            format!(
+                "<< /Title ({}) /Producer (kiwi-calib) >>",
+                pdf_text(&self.title)
+            ),
+        ];
+        let mut out: Vec<u8> = b"%PDF-1.4\n%\xe2\xe3\xcf\xd3\n".to_vec();
+        let mut offsets = Vec::with_capacity(objects.len());
+        for (k, body) in objects.iter().enumerate() {
+            offsets.push(out.len());
+            out.extend_from_slice(format!("{} 0 obj\n{body}\nendobj\n", k + 1).as_bytes());
+        }
+        let xref = out.len();
+        let mut tail = format!("xref\n0 {}\n0000000000 65535 f \n", objects.len() + 1);
+        for o in &offsets {
+            // Each entry is exactly 20 bytes: 10-digit offset, generation, 'n', space, LF.
+            let _ = writeln!(tail, "{o:010} 00000 n ");
+        }
+        let _ = write!(
+            tail,
+            "trailer\n<< /Size {} /Root 1 0 R /Info 6 0 R >>\nstartxref\n{xref}\n%%EOF\n",
+            objects.len() + 1
+        );
+        out.extend_from_slice(tail.as_bytes());
+        out
     }
 }
 
@@ -484,5 +640,84 @@ mod tests {
         // Every tag's border is black and its ring white.
         let cells = apriltag_cells(0).unwrap();
         assert!(cells[1][1] && cells[8][8] && !cells[0][0] && !cells[9][5]);
+    }
+
+    /// Check a PDF's cross-reference table: every entry points at its `N 0 obj`, `startxref`
+    /// at `xref`; returns the MediaBox.
+    fn check_pdf(pdf: &[u8]) -> [f64; 4] {
+        // One char per byte, so string positions are byte offsets.
+        let text: String = pdf
+            .iter()
+            .map(|&b| if b.is_ascii() { b as char } else { '?' })
+            .collect();
+        assert!(pdf.starts_with(b"%PDF-1.4\n") && pdf.ends_with(b"%%EOF\n"));
+        let sx = text.rfind("startxref\n").unwrap();
+        let xref: usize = text[sx + 10..].lines().next().unwrap().parse().unwrap();
+        assert!(pdf[xref..].starts_with(b"xref\n"));
+        let mut lines = text[xref..].lines().skip(1);
+        let header: Vec<usize> = lines
+            .next()
+            .unwrap()
+            .split(' ')
+            .map(|x| x.parse().unwrap())
+            .collect();
+        assert_eq!(header[0], 0);
+        let table = &pdf[xref + 5 + format!("0 {}\n", header[1]).len()..];
+        for k in 0..header[1] {
+            let entry = &table[20 * k..20 * (k + 1)];
+            assert_eq!(entry[19], b'\n', "entry {k} is not 20 bytes");
+            let off: usize = std::str::from_utf8(&entry[..10]).unwrap().parse().unwrap();
+            if k > 0 {
+                assert!(pdf[off..].starts_with(format!("{k} 0 obj\n").as_bytes()));
+            }
+        }
+        assert!(text.contains(&format!("/Size {}", header[1])));
+        // The content stream's /Length is its byte count up to "endstream".
+        let ls = text.find("/Length ").unwrap();
+        let len: usize = text[ls + 8..].split(' ').next().unwrap().parse().unwrap();
+        let body = text[ls..].find("stream\n").unwrap() + ls + 7;
+        assert!(text[body + len..].starts_with("endstream"));
+        let mb = text.find("/MediaBox [").unwrap();
+        let nums: Vec<f64> = text[mb + 11..]
+            .split(']')
+            .next()
+            .unwrap()
+            .split(' ')
+            .map(|x| x.parse().unwrap())
+            .collect();
+        [nums[0], nums[1], nums[2], nums[3]]
+    }
+
+    #[test]
+    fn board_pdf_is_well_formed_and_true_to_size() {
+        let t = AprilGridTarget::new(6, 6, 0.088, 0.3).unwrap();
+        let d = t.drawing().unwrap();
+        let pdf = t.to_pdf().unwrap();
+        let mb = check_pdf(&pdf);
+        // 6 tags of 88 mm with 26.4 mm gaps, a 26.4 mm frame of junction squares, 2 gaps + 5 mm
+        // of quiet zone each side, 8 mm of caption: 607.6 mm × 615.6 mm.
+        let pattern = 6.0 * 88.0 * 1.3 + 26.4;
+        let margin = 2.0 * 26.4 + 5.0;
+        let (w, h) = (pattern + 2.0 * margin, pattern + 2.0 * margin + 8.0);
+        assert!((d.width_mm - w).abs() < 1e-9 && (d.height_mm - h).abs() < 1e-9);
+        assert_eq!(mb[0], 0.0);
+        assert!((mb[2] - w * 72.0 / 25.4).abs() < 1e-3, "width {} pt", mb[2]);
+        assert!(
+            (mb[3] - h * 72.0 / 25.4).abs() < 1e-3,
+            "height {} pt",
+            mb[3]
+        );
+        // Every black rectangle is in the content stream, in millimetres.
+        let text = String::from_utf8_lossy(&pdf);
+        assert_eq!(text.matches(" re\n").count(), d.rects.len());
+        let r = d.rects[0];
+        assert!(text.contains(&format!("{:.4} {:.4} {:.4} {:.4} re", r.x, r.y, r.w, r.h)));
+        // The junction squares are 26.4 mm and the tag cells 8.8 mm.
+        assert!((r.w - 26.4).abs() < 1e-9 && (d.rects[49].w - 8.8).abs() < 1e-9);
+        // The SVG draws the same rectangles.
+        let svg = t.to_svg().unwrap();
+        assert_eq!(svg.matches("<rect").count(), d.rects.len() + 1);
+        assert!(text.contains("/F1 11.339 Tf") && text.contains("(6x6 tags, size="));
+        assert_eq!(pdf_text("a (b) \\ — é"), "a \\(b\\) \\\\ - ?");
     }
 }

@@ -181,3 +181,64 @@ fn clear_errors() {
     .unwrap();
     assert!(r.rms_px < 0.4);
 }
+
+/// The fit is bit-deterministic whatever the thread count: per-view costs and normal equations
+/// are computed in parallel but summed in view order (the rectified detection pass and every
+/// `intrinsics` run build on it).
+#[test]
+fn fit_is_bit_deterministic_across_threads() {
+    let dir = tempfile::tempdir().unwrap();
+    let cap = capture(dir.path(), LensModel::Kb4, 12, 480, 59);
+    let truth = truth_corners(&cap, "front");
+    let set = noisy_corner_set(&truth, &sim_target(), 480, 0.3, 3);
+    let fit = |threads: usize, kind: CameraModelKind| -> Vec<u64> {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap();
+        let options = IntrinsicsOptions {
+            model: kind,
+            check_coverage: false,
+            ..IntrinsicsOptions::default()
+        };
+        let r = pool.install(|| calibrate(&set, &options)).unwrap();
+        r.params
+            .iter()
+            .chain([&r.rms_px])
+            .map(|x| x.to_bits())
+            .collect()
+    };
+    for kind in [CameraModelKind::Kb4, CameraModelKind::DoubleSphere] {
+        let one = fit(1, kind);
+        assert_eq!(one, fit(2, kind), "{kind}: 1 and 2 threads differ");
+        assert_eq!(fit(2, kind), fit(2, kind), "{kind}: two runs differ");
+    }
+}
+
+/// Detection should be bit-deterministic: the same images give the same corners file run after
+/// run and with one or two threads. NOT MET YET: the `aprilgrid` crate (0.8) assembles the board
+/// by iterating std `HashMap`s, whose order is random per process and thread, so its first
+/// pass finds different tag subsets from run to run on some images (seen here: one image gave
+/// tags [1, 7, 13, 19, 25] in one call and 11 tags in the next), and the rectified pass then
+/// starts from a different lens. Run with `--ignored` to check a fix.
+#[test]
+#[ignore = "aprilgrid 0.8 iterates HashMaps in random order: first-pass tags vary run to run"]
+fn detection_is_deterministic_across_runs_and_threads() {
+    let dir = tempfile::tempdir().unwrap();
+    let cap = capture(dir.path(), LensModel::Kb4, 10, 640, 53);
+    let frames = cap.join("intrinsics/front/frames");
+    let target = sim_target();
+    let run = |threads: usize| -> String {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap();
+        let set = pool
+            .install(|| detect_folder(&frames, &target, &DetectOptions::default()))
+            .unwrap();
+        serde_json::to_string(&set).unwrap()
+    };
+    let first = run(2);
+    assert!(first == run(2), "two runs with 2 threads differ");
+    assert!(first == run(1), "1 and 2 threads differ");
+}

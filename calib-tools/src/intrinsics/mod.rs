@@ -496,8 +496,16 @@ pub fn calibrate(set: &CornerSet, options: &IntrinsicsOptions) -> Result<Intrins
     if options.check_coverage {
         check_coverage(&camera, &views)?;
     }
+    // The Double Sphere fit judges outliers with its own model: a KB4 lens fitted to a DS lens
+    // misfits the far periphery by a few tenths of a pixel, so rejections made at the KB4
+    // stage would drop good peripheral corners (and keep those whose noise happens to follow
+    // the KB4 curve, biasing the DS fit). Remember what the KB4 stage started from.
+    let before_kb4 = (views.clone(), rejected.len());
     let mut iterations = fit_with_rejection(&mut camera, &mut poses, &mut views, &mut rejected)?;
     if options.model == CameraModelKind::DoubleSphere {
+        let (start_views, start_rejected) = before_kb4;
+        views = start_views;
+        rejected.truncate(start_rejected);
         let max_theta = max_theta(&poses, &views);
         let Camera::Kb4(kb4) = &camera else {
             return Err(CalibError::Internal("expected the KB4 stage".into()));

@@ -74,13 +74,17 @@ struct ViewSystem {
     gp: SMatrix<f64, 6, 1>,
 }
 
-/// Total robust cost, or `None` if an active corner does not project.
+/// Total robust cost, or `None` if an active corner does not project. Per-view costs are
+/// computed in parallel but summed in view order, so the result (and every LM decision built on
+/// it) does not depend on the number of threads or on work stealing.
 fn cost(camera: &Camera, poses: &[Pose], views: &[ViewObs], delta: Option<f64>) -> Option<f64> {
-    views
+    let per_view: Vec<Option<f64>> = views
         .par_iter()
         .zip(poses.par_iter())
-        .filter(|(v, _)| v.view_active)
         .map(|(v, pose)| {
+            if !v.view_active {
+                return Some(0.0);
+            }
             let mut c = 0.0;
             for i in 0..v.board.len() {
                 if v.active[i] {
@@ -90,7 +94,8 @@ fn cost(camera: &Camera, poses: &[Pose], views: &[ViewObs], delta: Option<f64>) 
             }
             Some(c)
         })
-        .try_reduce(|| 0.0, |a, b| Some(a + b))
+        .collect();
+    per_view.into_iter().sum()
 }
 
 fn view_system(camera: &Camera, pose: &Pose, v: &ViewObs, delta: Option<f64>) -> ViewSystem {
