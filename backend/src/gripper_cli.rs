@@ -1,12 +1,14 @@
 //! `kiwi gripper`: jaw opening per front-lens frame of a wrist camera.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
+use kiwi_backend::gripper::calibrate::{CalibrateOptions, calibrate_tool};
 use kiwi_core::artifact::UnitCalibration;
+use kiwi_core::io::write_atomic;
 use kiwi_core::layout::ToolKind;
-use kiwi_core::tool::ToolDefinition;
+use kiwi_core::tool::{ToolCalibration, ToolDefinition, tool_calibration_file_name};
 
 /// `kiwi gripper` options.
 #[derive(Args, Debug)]
@@ -30,12 +32,31 @@ pub struct GripperArgs {
     /// Tool: chopstick, parallel_jaw, or a tool definition file (.toml, see hardware/tools).
     #[arg(long)]
     pub tool: String,
-    /// Output folder (default: <episode>/work/gripper/<camera>).
+    /// Output folder (default: <episode>/work/gripper/<camera>); with --calibrate, the
+    /// artifact file (default: beside --calibration).
     #[arg(long)]
     pub out: Option<PathBuf>,
     /// Print the summary as JSON.
     #[arg(long)]
     pub json: bool,
+    /// Calibrate the tool instead of measuring: the dot plane from the body ArUco tag and the
+    /// hinge from the jaw dots, written as `tool_<name>_<lens>.json` beside --calibration
+    /// (or to --out FILE.json).
+    #[arg(long)]
+    pub calibrate: bool,
+    /// With --calibrate: frames searched, spread over the recording.
+    #[arg(long, default_value_t = 60)]
+    pub calibration_frames: usize,
+    /// With --calibrate: replace an existing tool calibration.
+    #[arg(long)]
+    pub overwrite: bool,
+    /// Tool calibration to measure with (default: `tool_<name>_<lens>.json` beside
+    /// --calibration when it exists).
+    #[arg(long, conflicts_with = "nominal")]
+    pub tool_calibration: Option<PathBuf>,
+    /// Measure with the tool definition's CAD geometry even if a tool calibration exists.
+    #[arg(long)]
+    pub nominal: bool,
 }
 
 /// Run `kiwi gripper`.
@@ -47,7 +68,7 @@ pub fn run_gripper(args: &GripperArgs) -> Result<()> {
             "the bare-hand cuff has no jaws, so there is no opening to measure; use --tool \
              chopstick, parallel_jaw or a definition file"
         ),
-        path => ToolDefinition::load(std::path::Path::new(path))?,
+        path => ToolDefinition::load(Path::new(path))?,
     };
     let (lens_dir, default_out) = match (&args.lens, &args.episode, &args.camera) {
         (Some(l), _, _) => (l.clone(), None),
@@ -57,12 +78,45 @@ pub fn run_gripper(args: &GripperArgs) -> Result<()> {
         ),
         _ => bail!("give --lens DIR, or --episode DIR with --camera NAME"),
     };
+    let cal = UnitCalibration::load(&args.calibration)?;
+    let beside = args
+        .calibration
+        .parent()
+        .unwrap_or_else(|| Path::new("."))
+        .join(tool_calibration_file_name(&def.name, &args.lens_name));
+    if args.calibrate {
+        let out = args.out.clone().unwrap_or(beside);
+        return calibrate(args, &def, &cal, &lens_dir, &out);
+    }
     let out = match (&args.out, default_out) {
         (Some(o), _) => o.clone(),
         (None, Some(o)) => o,
         (None, None) => bail!("give --out DIR for the opening files"),
     };
-    let cal = UnitCalibration::load(&args.calibration)?;
+    let tool_cal = match (&args.tool_calibration, args.nominal) {
+        (Some(p), _) => Some(ToolCalibration::load(p)?),
+        (None, false) if beside.exists() => Some(ToolCalibration::load(&beside)?),
+        _ => None,
+    };
+    if let Some(tc) = &tool_cal {
+        if tc.unit_id != cal.unit_id || tc.lens != args.lens_name {
+            bail!(
+                "the tool calibration is for unit {} lens {}, but --calibration is unit {} and \
+                 the lens is {}: calibrate this unit's tool with --calibrate",
+                tc.unit_id,
+                tc.lens,
+                cal.unit_id,
+                args.lens_name
+            );
+        }
+        if tc.definition.name != def.name {
+            bail!(
+                "the tool calibration is for tool `{}`, not `{}`",
+                tc.definition.name,
+                def.name
+            );
+        }
+    }
     let lens = cal
         .lenses
         .iter()
@@ -87,8 +141,12 @@ pub fn run_gripper(args: &GripperArgs) -> Result<()> {
     ) {
         bar.set_style(style);
     }
-    let (summary, files) =
-        kiwi_backend::gripper::run(&camera, &def, &lens_dir, &out, &|| bar.inc(1))?;
+    let (summary, files) = match &tool_cal {
+        Some(tc) => kiwi_backend::gripper::run_calibrated(&camera, tc, &lens_dir, &out, &|| {
+            bar.inc(1);
+        })?,
+        None => kiwi_backend::gripper::run(&camera, &def, &lens_dir, &out, &|| bar.inc(1))?,
+    };
     bar.finish_and_clear();
     if args.json {
         println!("{}", serde_json::to_string_pretty(&summary)?);
@@ -107,6 +165,88 @@ pub fn run_gripper(args: &GripperArgs) -> Result<()> {
         for (reason, count) in &summary.missing {
             println!("  {count} frames {reason}");
         }
+        match &tool_cal {
+            Some(tc) => println!(
+                "  tool geometry from the tool calibration of unit {} ({} frames with the tag)",
+                tc.unit_id, tc.quality.frames_with_tag
+            ),
+            None => println!(
+                "  tool geometry from the definition's CAD numbers (no tool calibration; run \
+                 with --calibrate once)"
+            ),
+        }
+    }
+    Ok(())
+}
+
+/// `kiwi gripper --calibrate`: write the tool calibration artifact.
+fn calibrate(
+    args: &GripperArgs,
+    def: &ToolDefinition,
+    cal: &UnitCalibration,
+    lens_dir: &Path,
+    out: &Path,
+) -> Result<()> {
+    if out.extension().and_then(|e| e.to_str()) != Some("json") {
+        bail!(
+            "{}: with --calibrate, --out is the artifact file to write (ending in .json)",
+            out.display()
+        );
+    }
+    if out.exists() && !args.overwrite {
+        bail!(
+            "{} exists: a tool calibration is never replaced silently; pass --overwrite or \
+             --out another file",
+            out.display()
+        );
+    }
+    let lens = cal.lens(&args.lens_name).with_context(|| {
+        format!(
+            "{}: no lens named `{}`; pass --lens-name",
+            args.calibration.display(),
+            args.lens_name
+        )
+    })?;
+    let camera = lens.camera()?;
+    let frames = kiwi_core::layout::read_frames_csv(&lens_dir.join("frames.csv"))?;
+    let n = args.calibration_frames.min(frames.len());
+    let bar = indicatif::ProgressBar::new(n as u64);
+    if let Ok(style) = indicatif::ProgressStyle::with_template(
+        "tool calibration {bar:40} {pos}/{len} frames [{elapsed_precise}]",
+    ) {
+        bar.set_style(style);
+    }
+    let options = CalibrateOptions {
+        max_frames: args.calibration_frames,
+        unit_id: cal.unit_id.clone(),
+        lens: args.lens_name.clone(),
+        unit_calibration_date: cal.date.clone(),
+    };
+    let tc = calibrate_tool(&camera, def, lens_dir, &frames, &options, &|| bar.inc(1))?;
+    bar.finish_and_clear();
+    write_atomic(out, tc.to_json()?.as_bytes())?;
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&tc)?);
+    } else {
+        let q = &tc.quality;
+        println!(
+            "tool {} on unit {} lens {}: body tag in {} of {} frames (corner RMS {:.2} px, \
+             normal scatter {:.2} deg), hinge from {} jaw lines (dot RMS {:.2} mm); plane tilted \
+             {:.2} deg, jaws turned {:.2} deg, hinge moved {:.2} mm from the definition; wrote {}",
+            def.name,
+            tc.unit_id,
+            tc.lens,
+            q.frames_with_tag,
+            q.frames_searched,
+            q.tag_rms_px,
+            q.tag_normal_spread_deg,
+            q.jaw_lines,
+            q.dot_line_rms_m * 1e3,
+            q.plane_tilt_from_definition_deg,
+            q.jaw_direction_from_definition_deg,
+            q.hinge_shift_from_definition_m * 1e3,
+            out.display()
+        );
     }
     Ok(())
 }

@@ -69,8 +69,45 @@ pub struct MarkerDef {
     pub id: usize,
     /// Side of the black square (m).
     pub size_m: f64,
-    /// Tag centre behind the hinge along the jaw direction, in the dot plane (m).
+    /// Tag centre behind the hinge along the jaw direction, in the jaw centre plane (m).
     pub behind_hinge_m: f64,
+    /// The tag's printed face in front of the jaw centre plane, towards the camera (m): half
+    /// the thickness of the plate it is printed on. Printed "up" points along the jaws.
+    #[serde(default = "default_tag_face_offset")]
+    pub face_offset_m: f64,
+}
+
+/// Default [`MarkerDef::face_offset_m`]: a tag on a 1.6 mm plate centred in the jaw plane.
+fn default_tag_face_offset() -> f64 {
+    0.0008
+}
+
+/// How the bench encoder's counts become the jaw opening (`[encoder]`, optional): the servo's
+/// horn sits on the hinge (chopstick) or drives the plates (parallel jaw).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct EncoderDef {
+    /// Encoder count with the jaws closed.
+    pub zero_count: f64,
+    /// Counts per horn revolution (4096 on Feetech STS/SCS).
+    #[serde(default = "default_counts_per_rev")]
+    pub counts_per_rev: f64,
+    /// Opening per horn radian: rad/rad for the chopstick (1 with the horn on the hinge, −1
+    /// when it turns the other way), m/rad for the parallel jaw.
+    pub opening_per_horn_rad: f64,
+}
+
+fn default_counts_per_rev() -> f64 {
+    4096.0
+}
+
+impl EncoderDef {
+    /// The opening (rad or m) at a raw encoder count.
+    pub fn opening(&self, raw: f64) -> f64 {
+        (raw - self.zero_count) / self.counts_per_rev
+            * std::f64::consts::TAU
+            * self.opening_per_horn_rad
+    }
 }
 
 /// A rigid transform as written in the file.
@@ -103,6 +140,9 @@ pub struct ToolDefinition {
     pub marker: MarkerDef,
     /// `front_from_tip` (the camera-to-tip transform).
     pub cam_from_tip: TransformDef,
+    /// The bench encoder's count-to-opening map, when the tool has been on the servo bench.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub encoder: Option<EncoderDef>,
 }
 
 const CHOPSTICK: &str = include_str!("../../hardware/tools/chopstick.toml");
@@ -200,6 +240,7 @@ impl ToolDefinition {
             ("jaws.half_width_m", self.jaws.half_width_m),
             ("dots.radius_m", self.dots.radius_m),
             ("marker.size_m", self.marker.size_m),
+            ("marker.face_offset_m", self.marker.face_offset_m),
         ];
         for (field, v) in positive {
             if !(v.is_finite() && v > 0.0) {
@@ -241,6 +282,23 @@ impl ToolDefinition {
                     "jaws.max_opening",
                     "a positive opening",
                     self.jaws.max_opening.to_string(),
+                );
+            }
+        }
+        if let Some(e) = &self.encoder {
+            if !(e.zero_count.is_finite() && e.counts_per_rev.is_finite() && e.counts_per_rev > 0.0)
+            {
+                return bad(
+                    "encoder.counts_per_rev",
+                    "a finite zero_count and a positive counts_per_rev",
+                    format!("{} and {}", e.zero_count, e.counts_per_rev),
+                );
+            }
+            if !(e.opening_per_horn_rad.is_finite() && e.opening_per_horn_rad != 0.0) {
+                return bad(
+                    "encoder.opening_per_horn_rad",
+                    "a finite non-zero gain",
+                    e.opening_per_horn_rad.to_string(),
                 );
             }
         }
@@ -298,6 +356,219 @@ impl ToolDefinition {
             Translation3::from(Vector3::from(self.cam_from_tip.translation_m)),
             UnitQuaternion::from_matrix(&r),
         )
+    }
+}
+
+/// Schema version of tool calibration artifacts.
+pub const TOOL_CALIBRATION_SCHEMA_VERSION: u32 = 1;
+
+/// File name of a tool's calibration artifact beside the unit's `calibration.json`.
+pub fn tool_calibration_file_name(tool_name: &str, lens: &str) -> String {
+    format!("tool_{tool_name}_{lens}.json")
+}
+
+/// How well a tool calibration is supported by the frames it came from.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ToolCalibrationQuality {
+    /// Frames searched for the body tag.
+    pub frames_searched: usize,
+    /// Frames where the tag was found and used.
+    pub frames_with_tag: usize,
+    /// RMS of the tag corners' reprojection over all frames (source pixels).
+    pub tag_rms_px: f64,
+    /// Scatter of the per-frame tag normals about the joint fit (deg, RMS).
+    pub tag_normal_spread_deg: f64,
+    /// Scatter of the per-frame tag centres about the joint fit (m, RMS).
+    pub tag_position_spread_m: f64,
+    /// Jaw lines (one per jaw and frame) the hinge and jaw direction were refined from; 0
+    /// when they come from the tag and the definition's offsets alone.
+    pub jaw_lines: usize,
+    /// RMS distance of the dots from their jaw lines (m).
+    pub dot_line_rms_m: f64,
+    /// Angle between the calibrated and the definition's plane normal (deg).
+    pub plane_tilt_from_definition_deg: f64,
+    /// Angle between the calibrated and the definition's jaw direction (deg).
+    pub jaw_direction_from_definition_deg: f64,
+    /// Distance between the calibrated and the definition's hinge (m).
+    pub hinge_shift_from_definition_m: f64,
+}
+
+/// A tool calibrated on one lens of one unit: the dot plane and hinge as the camera sees them
+/// (from the body ArUco tag and the jaw dots), saved beside the unit's artifacts.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ToolCalibration {
+    /// [`TOOL_CALIBRATION_SCHEMA_VERSION`].
+    pub schema_version: u32,
+    /// Unit the tool was calibrated on.
+    pub unit_id: String,
+    /// Lens that sees the tool.
+    pub lens: String,
+    /// Date of the unit calibration used (`YYYY-MM-DD`).
+    pub unit_calibration_date: String,
+    /// The tool definition as read (CAD numbers, the definition's `cam_from_tip`).
+    pub definition: ToolDefinition,
+    /// Calibrated hinge in the front-lens frame (m).
+    pub hinge_in_front_m: [f64; 3],
+    /// Calibrated direction of the closed jaws (unit).
+    pub jaw_direction: [f64; 3],
+    /// Calibrated dot-plane normal, away from the camera (unit).
+    pub plane_normal: [f64; 3],
+    /// `front_from_tag` of the body tag (x along the printed rows, y its printed up, z out of
+    /// the printed face towards the camera; origin at the face centre).
+    pub front_from_tag: TransformDef,
+    /// `front_from_tip` moved with the calibrated tool body (the definition's tip offset).
+    pub cam_from_tip: TransformDef,
+    /// Support and change from the definition.
+    pub quality: ToolCalibrationQuality,
+}
+
+fn transform_pose(t: &TransformDef) -> Pose {
+    let r = Matrix3::from_fn(|i, j| t.rotation[i][j]);
+    Isometry3::from_parts(
+        Translation3::from(Vector3::from(t.translation_m)),
+        UnitQuaternion::from_matrix(&r),
+    )
+}
+
+impl TransformDef {
+    /// The transform of a pose.
+    pub fn from_pose(pose: &Pose) -> Self {
+        let r = pose.rotation.to_rotation_matrix();
+        let m = r.matrix();
+        Self {
+            rotation: [
+                [m[(0, 0)], m[(0, 1)], m[(0, 2)]],
+                [m[(1, 0)], m[(1, 1)], m[(1, 2)]],
+                [m[(2, 0)], m[(2, 1)], m[(2, 2)]],
+            ],
+            translation_m: pose.translation.vector.into(),
+        }
+    }
+
+    /// The pose of this transform.
+    pub fn to_pose(&self) -> Pose {
+        transform_pose(self)
+    }
+}
+
+impl ToolDefinition {
+    /// `front_from_body`: the tool body frame (origin at the hinge, x the jaw direction, y the
+    /// plane normal) in the front-lens frame.
+    pub fn front_from_body(&self) -> Pose {
+        body_frame(self.hinge(), self.jaw_direction(), self.plane_normal())
+    }
+}
+
+/// The body frame of a hinge, jaw direction and plane normal (orthonormalized).
+pub fn body_frame(hinge: Vector3<f64>, jaw: Vector3<f64>, normal: Vector3<f64>) -> Pose {
+    let z = jaw.cross(&normal).normalize();
+    let y = z.cross(&jaw).normalize();
+    let x = y.cross(&z);
+    Isometry3::from_parts(
+        Translation3::from(hinge),
+        UnitQuaternion::from_matrix(&Matrix3::from_columns(&[x, y, z])),
+    )
+}
+
+impl ToolCalibration {
+    /// Read and validate an artifact.
+    pub fn load(path: &Path) -> Result<Self> {
+        let text = crate::io::read_text(path)?;
+        Self::from_json(&text, path)
+    }
+
+    /// Parse and validate artifact text; `path` names it in errors.
+    pub fn from_json(text: &str, path: &Path) -> Result<Self> {
+        let mut de = serde_json::Deserializer::from_str(text);
+        let cal: Self =
+            serde_path_to_error::deserialize(&mut de).map_err(|e| CoreError::Parse {
+                path: path.to_path_buf(),
+                format: "JSON tool calibration",
+                field: e.path().to_string(),
+                message: e.inner().to_string(),
+                fix: "write it again with `kiwi gripper --calibrate` (docs/gripper.md)".into(),
+            })?;
+        cal.validate().map_err(|e| e.at_path(path))?;
+        Ok(cal)
+    }
+
+    /// Pretty JSON text.
+    pub fn to_json(&self) -> Result<String> {
+        serde_json::to_string_pretty(self).map_err(|e| {
+            CoreError::invalid_value("tool calibration", "encodable numbers", e.to_string(), "")
+        })
+    }
+
+    /// Check the schema, the definition, and that the calibrated directions are unit and
+    /// perpendicular.
+    pub fn validate(&self) -> Result<()> {
+        let bad = |field: &str, expected: &str, found: String| {
+            Err(CoreError::invalid_value(
+                field,
+                expected,
+                found,
+                "calibrate the tool again with `kiwi gripper --calibrate`",
+            ))
+        };
+        if self.schema_version != TOOL_CALIBRATION_SCHEMA_VERSION {
+            return bad("schema_version", "1", self.schema_version.to_string());
+        }
+        self.definition.validate()?;
+        for (field, v) in [
+            ("jaw_direction", self.jaw_direction),
+            ("plane_normal", self.plane_normal),
+        ] {
+            let n = Vector3::from(v).norm();
+            if !(n.is_finite() && (n - 1.0).abs() < ORTHO_TOL * 10.0) {
+                return bad(field, "a unit vector", format!("{v:?}"));
+            }
+        }
+        let c = Vector3::from(self.jaw_direction).dot(&Vector3::from(self.plane_normal));
+        if c.abs() > ORTHO_TOL * 10.0 {
+            return bad(
+                "plane_normal",
+                "perpendicular to jaw_direction",
+                format!("cosine {c:.3e}"),
+            );
+        }
+        if !self.hinge_in_front_m.iter().all(|v| v.is_finite()) {
+            return bad(
+                "hinge_in_front_m",
+                "finite metres",
+                format!("{:?}", self.hinge_in_front_m),
+            );
+        }
+        for (field, t) in [
+            ("front_from_tag", &self.front_from_tag),
+            ("cam_from_tip", &self.cam_from_tip),
+        ] {
+            let r = Matrix3::from_fn(|i, j| t.rotation[i][j]);
+            let ortho = (r.transpose() * r - Matrix3::identity()).abs().max();
+            let finite = t.translation_m.iter().all(|v| v.is_finite());
+            if !(finite && ortho < 1e-5 && (r.determinant() - 1.0).abs() < 1e-5) {
+                return bad(
+                    field,
+                    "a proper rotation and finite translation",
+                    format!("|RᵀR − I| = {ortho:.2e}"),
+                );
+            }
+        }
+        Ok(())
+    }
+
+    /// The tool definition with the calibrated hinge, jaw direction, plane normal and tip: what
+    /// the estimator measures with.
+    pub fn calibrated_definition(&self) -> ToolDefinition {
+        let mut def = self.definition.clone();
+        def.hinge = HingeDef {
+            in_front_m: self.hinge_in_front_m,
+            jaw_direction: self.jaw_direction,
+            plane_normal: self.plane_normal,
+        };
+        def.cam_from_tip = self.cam_from_tip.clone();
+        def
     }
 }
 

@@ -367,17 +367,29 @@ pub struct GripperEstimator {
 /// The dot chosen for a slot: how far its area is from a dot's, and its plane position.
 type SlotPick = (f64, [f64; 2]);
 
-/// A line through the dots of one jaw: `direction` (unit) through `point`.
+/// A line through the dots of one jaw, in dot-plane coordinates (m): `direction` (unit, along
+/// +u) through `point`.
 #[derive(Debug, Clone, Copy)]
-struct JawLine {
-    point: [f64; 2],
-    direction: [f64; 2],
-    rms: f64,
-    n: usize,
+pub struct JawLine {
+    /// A point on the line (the centroid, or the anchor).
+    pub point: [f64; 2],
+    /// Unit direction, pointing along +u.
+    pub direction: [f64; 2],
+    /// RMS distance of the dots from the line (m).
+    pub rms: f64,
+    /// Dots on the line.
+    pub n: usize,
+}
+
+/// Dots of one frame assigned to each jaw (side of the centre line) and dot slot.
+#[derive(Debug, Clone, Default)]
+pub struct JawDots {
+    /// Per jaw (−v side first): (slot index, plane position (m)).
+    pub jaws: [Vec<(usize, [f64; 2])>; 2],
 }
 
 /// Total-least-squares line through points; through `anchor` when given (the hinge).
-fn fit_line(pts: &[[f64; 2]], anchor: Option<[f64; 2]>) -> Option<JawLine> {
+pub fn fit_line(pts: &[[f64; 2]], anchor: Option<[f64; 2]>) -> Option<JawLine> {
     if pts.len() < MIN_DOTS_PER_JAW {
         return None;
     }
@@ -497,8 +509,40 @@ impl GripperEstimator {
             .map(|(k, _)| k)
     }
 
+    /// Slot positions along the jaw (m from the hinge).
+    pub fn slots(&self) -> &[f64] {
+        &self.slots
+    }
+
+    /// The frame's dots assigned to jaws and slots (empty when the frame does not fit the
+    /// lens or the dot plane is mostly out of view); used by the tool calibration.
+    pub fn jaw_dots(&self, image: &ImageView<'_>) -> JawDots {
+        if image.width != self.rect.src.0
+            || image.height != self.rect.src.1
+            || self.rect.visible < MIN_VISIBLE
+        {
+            return JawDots::default();
+        }
+        let dots = find_dots(&self.rect, image, self.def.dots.radius_m);
+        let jaws = match self.def.kind {
+            ToolKind::Chopstick => self.per_jaw_slots(&dots, |d| d.u.hypot(d.v)),
+            _ => self.per_jaw_slots(&dots, |d| d.u),
+        };
+        JawDots { jaws }
+    }
+
     /// Split dots per jaw by side of the centre line, at most one per slot and jaw.
     fn per_jaw(&self, dots: &[Dot], along: impl Fn(&Dot) -> f64) -> [Vec<[f64; 2]>; 2] {
+        self.per_jaw_slots(dots, along)
+            .map(|j| j.into_iter().map(|(_, p)| p).collect())
+    }
+
+    /// [`Self::per_jaw`] with each dot's slot index.
+    fn per_jaw_slots(
+        &self,
+        dots: &[Dot],
+        along: impl Fn(&Dot) -> f64,
+    ) -> [Vec<(usize, [f64; 2])>; 2] {
         let n = self.slots.len();
         let mut best: [Vec<Option<SlotPick>>; 2] = [vec![None; n], vec![None; n]];
         let expected =
@@ -513,7 +557,12 @@ impl GripperEstimator {
                 best[side][k] = Some((score, [d.u, d.v]));
             }
         }
-        best.map(|b| b.into_iter().flatten().map(|(_, p)| p).collect())
+        best.map(|b| {
+            b.into_iter()
+                .enumerate()
+                .filter_map(|(k, pick)| pick.map(|(_, p)| (k, p)))
+                .collect()
+        })
     }
 
     fn confidence(&self, lines: [&JawLine; 2]) -> f64 {

@@ -7,6 +7,8 @@
 //! parallel and writes `opening.csv` (`t,opening,unit,confidence,status`), `opening.svg`, the
 //! tool artifact `tool.json` and a summary `opening.json`.
 
+pub mod aruco;
+pub mod calibrate;
 pub mod estimate;
 
 use std::fmt::Write as _;
@@ -15,7 +17,7 @@ use std::path::{Path, PathBuf};
 use kiwi_core::camera::Camera;
 use kiwi_core::io::write_atomic;
 use kiwi_core::layout::{FrameRecord, read_frames_csv};
-use kiwi_core::tool::ToolDefinition;
+use kiwi_core::tool::{ToolCalibration, ToolDefinition};
 use opencv::prelude::*;
 use rayon::prelude::*;
 use serde::Serialize;
@@ -248,10 +250,55 @@ pub struct GripperOutputs {
     pub summary: PathBuf,
 }
 
-/// Measure a lens folder and write the outputs into `out_dir`.
+/// Measure a lens folder with the tool definition's CAD geometry and write the outputs into
+/// `out_dir`.
 pub fn run(
     camera: &Camera,
     def: &ToolDefinition,
+    lens_dir: &Path,
+    out_dir: &Path,
+    progress: &(dyn Fn() + Sync),
+) -> Result<(OpeningSummary, GripperOutputs)> {
+    run_with(
+        camera,
+        def,
+        "tool definition (nominal CAD geometry; no tool calibration given)",
+        lens_dir,
+        out_dir,
+        progress,
+    )
+}
+
+/// Measure a lens folder with a tool calibration (`kiwi gripper --calibrate`) and write the
+/// outputs into `out_dir`.
+pub fn run_calibrated(
+    camera: &Camera,
+    calibration: &ToolCalibration,
+    lens_dir: &Path,
+    out_dir: &Path,
+    progress: &(dyn Fn() + Sync),
+) -> Result<(OpeningSummary, GripperOutputs)> {
+    let source = format!(
+        "tool calibration of unit {} lens {} (body tag in {} frames, {} jaw lines)",
+        calibration.unit_id,
+        calibration.lens,
+        calibration.quality.frames_with_tag,
+        calibration.quality.jaw_lines
+    );
+    run_with(
+        camera,
+        &calibration.calibrated_definition(),
+        &source,
+        lens_dir,
+        out_dir,
+        progress,
+    )
+}
+
+fn run_with(
+    camera: &Camera,
+    def: &ToolDefinition,
+    plane_source: &str,
     lens_dir: &Path,
     out_dir: &Path,
     progress: &(dyn Fn() + Sync),
@@ -279,9 +326,7 @@ pub fn run(
     let artifact = ToolArtifact {
         schema_version: 1,
         definition: def.clone(),
-        plane_source: "tool definition (nominal CAD geometry; ArUco refinement not available \
-                       in this build)"
-            .into(),
+        plane_source: plane_source.into(),
         plane: estimator.rectifier().plane().clone(),
     };
     let json = |v: serde_json::Result<String>, path: &Path| {

@@ -111,12 +111,17 @@ pub struct CompareArgs {
     /// Output folder (compare.json, compare.png, aligned.csv).
     #[arg(long)]
     pub out: PathBuf,
-    /// Encoder count at a closed jaw (default: the angle_rad column as recorded).
+    /// The tool: chopstick, parallel_jaw, a definition (.toml) or a JSON artifact with one
+    /// (kiwi gripper's tool.json, a tool calibration). Its [encoder] section maps counts to
+    /// the opening. Default: tool.json beside --vision when it exists.
+    #[arg(long)]
+    pub tool: Option<String>,
+    /// Override: encoder count at a closed jaw (without a tool: the angle_rad column).
     #[arg(long)]
     pub zero_count: Option<f64>,
-    /// Jaw angle per horn angle (−1 if the horn turns the other way).
-    #[arg(long, default_value_t = 1.0, allow_negative_numbers = true)]
-    pub scale: f64,
+    /// Override: opening per horn radian (jaw rad/rad; −1 if the horn turns the other way).
+    #[arg(long, allow_negative_numbers = true)]
+    pub scale: Option<f64>,
     /// Print `{"rmse", "unit", "offset_s", "n"}` as JSON.
     #[arg(long)]
     pub json: bool,
@@ -128,10 +133,7 @@ pub fn run(cmd: &BenchCommand) -> Result<String, BenchError> {
         BenchCommand::Servo(a) => run_servo(a),
         BenchCommand::FakeServo(a) => run_fake(a),
         BenchCommand::Compare(a) => {
-            let map = EncoderMap {
-                zero_count: a.zero_count,
-                scale: a.scale,
-            };
+            let map = encoder_map(a)?;
             let (c, out) = compare::run(&a.encoder, &a.vision, &map, &a.out)?;
             if a.json {
                 Ok(serde_json::json!({
@@ -144,12 +146,13 @@ pub fn run(cmd: &BenchCommand) -> Result<String, BenchError> {
                     compare::OpeningUnit::Px => "px",
                 };
                 Ok(format!(
-                    "rmse {:.3} {u}, max {:.3} {u}, bias {:+.3} {u} over {} samples; clock offset {:.4} s (host = video + offset); wrote {}, {}, {}",
+                    "rmse {:.3} {u}, max {:.3} {u}, bias {:+.3} {u} over {} samples; clock offset {:.4} s (host = video + offset); encoder map: {}; wrote {}, {}, {}",
                     c.rmse,
                     c.max_error,
                     c.bias,
                     c.n,
                     c.offset_s,
+                    c.map_source,
                     out.json.display(),
                     out.plot.display(),
                     out.aligned.display()
@@ -157,6 +160,32 @@ pub fn run(cmd: &BenchCommand) -> Result<String, BenchError> {
             }
         }
     }
+}
+
+/// The encoder map of `bench compare`: the tool's, then the command-line overrides.
+fn encoder_map(a: &CompareArgs) -> Result<EncoderMap, BenchError> {
+    let beside = a.vision.with_file_name("tool.json");
+    let spec = match &a.tool {
+        Some(t) => Some(t.clone()),
+        None if beside.exists() => Some(beside.display().to_string()),
+        None => None,
+    };
+    let mut map = match &spec {
+        Some(spec) => {
+            let (def, px_per_m) = compare::load_tool(spec)?;
+            EncoderMap::from_tool(&def, px_per_m, spec)
+        }
+        None => EncoderMap::default(),
+    };
+    if let Some(z) = a.zero_count {
+        map.zero_count = Some(z);
+        map.source = format!("--zero-count {z} over {}", map.source);
+    }
+    if let Some(s) = a.scale {
+        map.scale = s;
+        map.source = format!("--scale {s} over {}", map.source);
+    }
+    Ok(map)
 }
 
 fn run_servo(a: &ServoArgs) -> Result<String, BenchError> {

@@ -8,6 +8,9 @@ use rustfft::FftPlanner;
 use rustfft::num_complex::Complex;
 use serde::Serialize;
 
+use kiwi_core::layout::ToolKind;
+use kiwi_core::tool::ToolDefinition;
+
 use super::error::BenchError;
 use super::protocol::COUNTS_PER_REV;
 use crate::plot::{Figure, Series, Style};
@@ -59,20 +62,30 @@ pub struct VisionSample {
 }
 
 /// How encoder readings become openings.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone)]
 pub struct EncoderMap {
     /// Count at a closed jaw; `None` uses the `angle_rad` column as recorded.
     pub zero_count: Option<f64>,
-    /// Jaw angle per horn angle (1 when the horn sits on the hinge; −1 when it turns the
-    /// other way).
+    /// Encoder counts per horn revolution.
+    pub counts_per_rev: f64,
+    /// Opening per horn radian: jaw rad per horn rad for the chopstick (1 when the horn sits
+    /// on the hinge; −1 when it turns the other way), m per rad for the parallel jaw.
     pub scale: f64,
+    /// Rectified pixels per metre of the parallel jaw's gap (`kiwi gripper`'s `tool.json`):
+    /// with a metric `scale` it fixes the px map; without, gain and intercept are fitted.
+    pub px_per_m: Option<f64>,
+    /// Where the map came from (reported in `compare.json`).
+    pub source: String,
 }
 
 impl Default for EncoderMap {
     fn default() -> Self {
         Self {
             zero_count: None,
+            counts_per_rev: f64::from(COUNTS_PER_REV),
             scale: 1.0,
+            px_per_m: None,
+            source: "angle_rad column as recorded".into(),
         }
     }
 }
@@ -80,10 +93,78 @@ impl Default for EncoderMap {
 impl EncoderMap {
     fn angle_rad(&self, s: &EncoderSample) -> f64 {
         let horn = match self.zero_count {
-            Some(z) => (s.raw - z) / f64::from(COUNTS_PER_REV) * std::f64::consts::TAU,
+            Some(z) => (s.raw - z) / self.counts_per_rev * std::f64::consts::TAU,
             None => s.angle_rad,
         };
         horn * self.scale
+    }
+
+    /// The map of a tool definition's `[encoder]` section; `px_per_m` from the gripper's
+    /// `tool.json` when known. Without the section, the recorded `angle_rad` is used.
+    pub fn from_tool(def: &ToolDefinition, px_per_m: Option<f64>, source: &str) -> Self {
+        match &def.encoder {
+            Some(e) => Self {
+                zero_count: Some(e.zero_count),
+                counts_per_rev: e.counts_per_rev,
+                scale: e.opening_per_horn_rad,
+                px_per_m,
+                source: format!("{source} (encoder section of tool `{}`)", def.name),
+            },
+            None => Self {
+                px_per_m,
+                source: format!(
+                    "angle_rad column as recorded (tool `{}` in {source} has no [encoder] section)",
+                    def.name
+                ),
+                ..Self::default()
+            },
+        }
+    }
+}
+
+/// The tool behind a comparison: a built-in name (`chopstick`, `parallel_jaw`), a definition
+/// (`.toml`), or a JSON artifact holding one (`kiwi gripper`'s `tool.json`, a tool
+/// calibration); also the rectified px/m when the artifact records it.
+pub fn load_tool(spec: &str) -> Result<(ToolDefinition, Option<f64>), BenchError> {
+    let core = |path: &Path, e: kiwi_core::error::CoreError| file_err(path, e.to_string());
+    match spec {
+        "chopstick" | "parallel_jaw" | "parallel-jaw" => {
+            let kind = if spec == "chopstick" {
+                ToolKind::Chopstick
+            } else {
+                ToolKind::ParallelJaw
+            };
+            let def = ToolDefinition::builtin(kind).map_err(|e| core(Path::new(spec), e))?;
+            Ok((def, None))
+        }
+        path => {
+            let path = Path::new(path);
+            if path.extension().and_then(|e| e.to_str()) == Some("toml") {
+                let def = ToolDefinition::load(path).map_err(|e| core(path, e))?;
+                return Ok((def, None));
+            }
+            let text = std::fs::read_to_string(path)
+                .map_err(|e| file_err(path, format!("cannot read the tool file: {e}")))?;
+            let v: serde_json::Value = serde_json::from_str(&text)
+                .map_err(|e| file_err(path, format!("expected a JSON tool artifact: {e}")))?;
+            let def_value = v.get("definition").cloned().ok_or_else(|| {
+                file_err(
+                    path,
+                    "no `definition` field: pass kiwi gripper's tool.json, a tool calibration \
+                     or a .toml definition"
+                        .into(),
+                )
+            })?;
+            let def: ToolDefinition = serde_json::from_value(def_value)
+                .map_err(|e| file_err(path, format!("field `definition`: {e}")))?;
+            def.validate().map_err(|e| core(path, e))?;
+            let px_per_m = v
+                .get("plane")
+                .and_then(|p| p.get("px_per_m"))
+                .and_then(serde_json::Value::as_f64)
+                .filter(|p| p.is_finite() && *p > 0.0);
+            Ok((def, px_per_m))
+        }
     }
 }
 
@@ -115,6 +196,8 @@ pub struct Comparison {
     pub vision_rows: usize,
     /// Dominant period of the motion (s), used for the one-cycle plot.
     pub cycle_s: f64,
+    /// Where the encoder-to-opening map came from.
+    pub map_source: String,
 }
 
 /// Aligned samples behind a comparison (video time, vision, encoder as opening).
@@ -486,9 +569,11 @@ pub fn compare(
         ),
     })?;
     let (t, x, y) = matched(offset_s);
-    let (gain, intercept) = match unit {
-        OpeningUnit::Deg => (1f64.to_degrees(), 0.0),
-        OpeningUnit::Px => {
+    let (gain, intercept) = match (unit, map.zero_count, map.px_per_m) {
+        (OpeningUnit::Deg, _, _) => (1f64.to_degrees(), 0.0),
+        // Encoder counts → metres (the tool's encoder map) → rectified px.
+        (OpeningUnit::Px, Some(_), Some(px_per_m)) => (px_per_m, 0.0),
+        (OpeningUnit::Px, _, _) => {
             let (a, b, _) = linear_fit(&x, &y).ok_or_else(|| BenchError::Setting {
                 name: "encoder",
                 detail: "the encoder did not move: open and close the jaw during the recording"
@@ -519,6 +604,7 @@ pub fn compare(
             vision_measured: vision.len(),
             vision_rows,
             cycle_s,
+            map_source: map.source.clone(),
         },
         Aligned {
             t,
@@ -642,6 +728,12 @@ pub fn run(
     map: &EncoderMap,
     out_dir: &Path,
 ) -> Result<(Comparison, CompareOutputs), BenchError> {
+    if !(map.counts_per_rev.is_finite() && map.counts_per_rev > 0.0) {
+        return Err(BenchError::Setting {
+            name: "counts-per-rev",
+            detail: format!("expected a positive count, got {}", map.counts_per_rev),
+        });
+    }
     if !(map.scale.is_finite() && map.scale != 0.0) {
         return Err(BenchError::Setting {
             name: "scale",
