@@ -70,9 +70,16 @@ fn simulated_bench_recovers_offset_and_rmse() {
     assert_eq!(unit, OpeningUnit::Deg);
     let (mut sum, mut n) = (0.0, 0);
     for v in &vision {
-        let k = truth
-            .binary_search_by(|(t, _)| t.total_cmp(&v.t))
-            .unwrap_or_else(|k| k.min(truth.len() - 1));
+        // The nearest truth row (opening.csv rounds times to 1 µs).
+        let i = truth.partition_point(|(t, _)| *t < v.t);
+        let k = [i.saturating_sub(1), i.min(truth.len() - 1)]
+            .into_iter()
+            .min_by(|a, b| {
+                (truth[*a].0 - v.t)
+                    .abs()
+                    .total_cmp(&(truth[*b].0 - v.t).abs())
+            })
+            .unwrap();
         assert!((truth[k].0 - v.t).abs() < 1e-5, "frame time {}", v.t);
         sum += (v.opening - truth[k].1.to_degrees()).powi(2);
         n += 1;
