@@ -26,8 +26,6 @@ use kiwi_core::rig::{
 
 use crate::error::{CalibError, Result};
 
-/// Speed of sound (m/s), for the speaker-distance correction.
-const SPEED_OF_SOUND_M_S: f64 = 343.0;
 /// A video fit whose rate departs from 1 by more than this is not a clock (wrong refresh rate,
 /// or a recording sped up by its player).
 const MAX_RATE_ERROR: f64 = 2e-3;
@@ -555,7 +553,7 @@ pub fn analyse_capture(dir: &Path, options: &AvDelayOptions) -> Result<CaptureRe
         .iter()
         .find(|(n, _)| *n == name)
         .map_or(0.0, |(_, d)| *d);
-    let propagation = distance / SPEED_OF_SOUND_M_S;
+    let propagation = distance / kiwi_core::rig::SPEED_OF_SOUND_M_S;
     let ax: Vec<f64> = labelled.iter().map(|(t, _)| t - propagation).collect();
     let ay: Vec<f64> = labelled.iter().map(|(_, c)| *c).collect();
     let audio_fit = robust_line(&ax, &ay, true, AUDIO_SCALE_FLOOR_S)

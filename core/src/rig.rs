@@ -21,6 +21,8 @@ pub const CHIRP_F0_HZ: f64 = 1500.0;
 pub const CHIRP_F1_HZ: f64 = 4500.0;
 /// Gap from a double chirp's first onset to its second (s).
 pub const DOUBLE_GAP_S: f64 = 0.06;
+/// Speed of sound in room air (m/s): turns the rig speaker's distance into the sound's travel time.
+pub const SPEED_OF_SOUND_M_S: f64 = 343.0;
 
 /// One scheduled chirp.
 #[derive(Debug, Clone, Copy, PartialEq)]
