@@ -346,6 +346,283 @@ fn hinge_step(est: &GripperEstimator, kind: ToolKind, obs: &[JawDots]) -> Option
     }
 }
 
+/// One jaw's dots in one frame, for the plane fit: each dot's distance from the hinge along the
+/// jaw (its slot) and its bearing in the lens frame.
+struct JawObs {
+    slots: Vec<f64>,
+    bearings: Vec<Vector3<f64>>,
+    /// Starting value of the jaw's own parameter (chopstick: angle from `e_u`, rad; parallel
+    /// jaw: the plate's dot-line offset along `e_v`, m).
+    start: f64,
+    /// Frame index (pairs the two jaws of a frame).
+    frame: usize,
+}
+
+/// The dot plane as a body frame: origin on the dotted face under the hinge, axes `e_u`
+/// (closed jaws), `e_v`, `n` (right-handed, `n` away from the camera).
+#[derive(Debug, Clone, Copy)]
+struct PlaneBody {
+    origin: Vector3<f64>,
+    rotation: Rotation3<f64>,
+}
+
+impl PlaneBody {
+    /// The body moved by `d` = (rotation in its own axes, translation in its own axes).
+    fn moved(&self, d: &Vector6<f64>) -> Self {
+        let r = Rotation3::from_scaled_axis(Vector3::new(d[0], d[1], d[2]));
+        Self {
+            origin: self.origin + self.rotation * Vector3::new(d[3], d[4], d[5]),
+            rotation: self.rotation * r,
+        }
+    }
+}
+
+/// A dot's position in the plane body frame: `s` along its jaw, with the jaw's parameter `p`.
+fn body_dot(kind: ToolKind, s: f64, p: f64) -> Vector3<f64> {
+    match kind {
+        ToolKind::Chopstick => Vector3::new(s * p.cos(), s * p.sin(), 0.0),
+        _ => Vector3::new(s, p, 0.0),
+    }
+}
+
+/// Pose components of the plane fit left free. The chopstick's per-jaw angles absorb a turn
+/// about the normal, the parallel jaw's per-plate offsets a shift across the jaws: those are
+/// fixed afterwards from the jaws' mean (bisector, midline).
+fn free_pose(kind: ToolKind) -> [usize; 5] {
+    match kind {
+        ToolKind::Chopstick => [0, 1, 3, 4, 5],
+        _ => [0, 1, 2, 3, 5],
+    }
+}
+
+/// Angular residual (2 components) of a body point against an observed bearing.
+fn bearing_residual(body: &PlaneBody, x: &Vector3<f64>, b: &Vector3<f64>) -> [f64; 2] {
+    let p = (body.origin + body.rotation * x).normalize();
+    let (t1, t2) = tangent_basis(b);
+    [t1.dot(&p), t2.dot(&p)]
+}
+
+/// Plane-fit iterations (Gauss–Newton with a little damping; converges in 3–6).
+const PLANE_ITERATIONS: usize = 20;
+/// A dot whose residual exceeds this many times the fit's RMS is dropped and the fit rerun
+/// (a misread or half-occluded dot).
+const PLANE_OUTLIER_RMS: f64 = 4.0;
+
+/// Result of the joint dot-plane fit.
+struct PlaneFit {
+    body: PlaneBody,
+    /// Per-jaw parameters, aligned with the observations.
+    params: Vec<f64>,
+    /// RMS of the dots' distance from their modelled position, across the ray (m).
+    rms_m: f64,
+}
+
+/// Joint fit of the dot plane's pose (tilt, depth, in-plane position) and every jaw's own
+/// parameter to the dots' bearings over all frames: the dots sit at known distances along
+/// each jaw (their slots), so their spacing fixes the depth and foreshortening the tilt,
+/// independently of the body tag (whose corners carry a small systematic bias).
+fn fit_plane(kind: ToolKind, start: PlaneBody, jaws: &[JawObs]) -> Option<PlaneFit> {
+    let free = free_pose(kind);
+    let m = jaws.len();
+    let np = free.len() + m;
+    let mut body = start;
+    let mut params: Vec<f64> = jaws.iter().map(|j| j.start).collect();
+    let mut keep: Vec<Vec<bool>> = jaws.iter().map(|j| vec![true; j.slots.len()]).collect();
+    let eps = 1e-7;
+    let mut rms_angle = f64::NAN;
+    for round in 0..2 {
+        for _ in 0..PLANE_ITERATIONS {
+            let mut jtj = nalgebra::DMatrix::<f64>::zeros(np, np);
+            let mut jtr = nalgebra::DVector::<f64>::zeros(np);
+            let mut cols = [0usize; 6];
+            for (jl, jaw) in jaws.iter().enumerate() {
+                for (k, (s, b)) in jaw.slots.iter().zip(&jaw.bearings).enumerate() {
+                    if !keep[jl][k] {
+                        continue;
+                    }
+                    let x = body_dot(kind, *s, params[jl]);
+                    let r0 = bearing_residual(&body, &x, b);
+                    let mut jac = [[0.0; 6]; 2];
+                    for (c, &q) in free.iter().enumerate() {
+                        let mut d = Vector6::zeros();
+                        d[q] = eps;
+                        let r1 = bearing_residual(&body.moved(&d), &x, b);
+                        jac[0][c] = (r1[0] - r0[0]) / eps;
+                        jac[1][c] = (r1[1] - r0[1]) / eps;
+                        cols[c] = c;
+                    }
+                    let x1 = body_dot(kind, *s, params[jl] + eps);
+                    let r1 = bearing_residual(&body, &x1, b);
+                    jac[0][5] = (r1[0] - r0[0]) / eps;
+                    jac[1][5] = (r1[1] - r0[1]) / eps;
+                    cols[5] = free.len() + jl;
+                    for (row, r) in jac.iter().zip(r0) {
+                        for a in 0..6 {
+                            jtr[cols[a]] += row[a] * r;
+                            for c in 0..6 {
+                                jtj[(cols[a], cols[c])] += row[a] * row[c];
+                            }
+                        }
+                    }
+                }
+            }
+            for k in 0..np {
+                jtj[(k, k)] *= 1.0 + 1e-6;
+            }
+            let step = jtj.cholesky()?.solve(&(-jtr));
+            let mut d = Vector6::zeros();
+            for (c, &q) in free.iter().enumerate() {
+                d[q] = step[c];
+            }
+            body = body.moved(&d);
+            for (p, st) in params.iter_mut().zip(step.iter().skip(free.len())) {
+                *p += st;
+            }
+            if step.norm() < 1e-12 {
+                break;
+            }
+        }
+        // Residuals: RMS angle, then drop outliers once.
+        let mut res = Vec::new();
+        for (jl, jaw) in jaws.iter().enumerate() {
+            for (k, (s, b)) in jaw.slots.iter().zip(&jaw.bearings).enumerate() {
+                let r = bearing_residual(&body, &body_dot(kind, *s, params[jl]), b);
+                res.push((jl, k, r[0].hypot(r[1])));
+            }
+        }
+        let used: Vec<f64> = res
+            .iter()
+            .filter(|(j, k, _)| keep[*j][*k])
+            .map(|r| r.2)
+            .collect();
+        rms_angle = (used.iter().map(|r| r * r).sum::<f64>() / used.len().max(1) as f64).sqrt();
+        if round == 0 {
+            for (j, k, r) in res {
+                keep[j][k] = r <= PLANE_OUTLIER_RMS * rms_angle;
+            }
+        }
+    }
+    let depth = jaws
+        .iter()
+        .flat_map(|j| j.slots.iter().zip(&j.bearings).map(|(s, _)| *s))
+        .map(|s| (body.origin + body.rotation * Vector3::new(s, 0.0, 0.0)).norm())
+        .sum::<f64>()
+        / jaws.iter().map(|j| j.slots.len()).sum::<usize>().max(1) as f64;
+    (body.origin.iter().all(|v| v.is_finite()) && params.iter().all(|v| v.is_finite())).then_some(
+        PlaneFit {
+            body,
+            params,
+            rms_m: rms_angle * depth,
+        },
+    )
+}
+
+/// The plane body of the estimator's current dot plane.
+fn plane_body(est: &GripperEstimator) -> PlaneBody {
+    let plane = est.rectifier().plane();
+    let (e_u, e_v) = (Vector3::from(plane.e_u), Vector3::from(plane.e_v));
+    PlaneBody {
+        origin: Vector3::from(plane.origin),
+        rotation: Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[
+            e_u,
+            e_v,
+            e_u.cross(&e_v),
+        ])),
+    }
+}
+
+/// Jaw observations for the plane fit from per-frame dots (plane coordinates of `est`).
+fn jaw_observations(est: &GripperEstimator, kind: ToolKind, obs: &[JawDots]) -> Vec<JawObs> {
+    let plane = est.rectifier().plane();
+    let mut out = Vec::new();
+    for (frame, o) in obs.iter().enumerate() {
+        for jaw in &o.jaws {
+            if jaw.len() < MIN_LINE_DOTS {
+                continue;
+            }
+            let slots: Vec<f64> = jaw
+                .iter()
+                .filter_map(|(k, _)| est.slots().get(*k).copied())
+                .collect();
+            if slots.len() != jaw.len() {
+                continue;
+            }
+            let bearings = jaw
+                .iter()
+                .map(|(_, p)| plane.point(p[0], p[1]).normalize())
+                .collect();
+            let start = match kind {
+                ToolKind::Chopstick => {
+                    let pts: Vec<[f64; 2]> = jaw.iter().map(|(_, p)| *p).collect();
+                    match fit_line(&pts, Some([0.0, 0.0])) {
+                        Some(l) => line_angle(&l),
+                        None => continue,
+                    }
+                }
+                _ => jaw.iter().map(|(_, p)| p[1]).sum::<f64>() / jaw.len() as f64,
+            };
+            out.push(JawObs {
+                slots,
+                bearings,
+                start,
+                frame,
+            });
+        }
+    }
+    out
+}
+
+/// Hinge, jaw direction and plane normal from a plane fit: the chopstick's closed direction
+/// is the jaws' mean bisector, the parallel jaw's rail centre their mean midline.
+fn geometry_from_fit(
+    kind: ToolKind,
+    fit: &PlaneFit,
+    jaws: &[JawObs],
+    half_thickness: f64,
+) -> Option<(Vector3<f64>, Vector3<f64>, Vector3<f64>)> {
+    let mut mids = Vec::new();
+    for (a, ja) in jaws.iter().enumerate() {
+        for (b, jb) in jaws.iter().enumerate().skip(a + 1) {
+            if ja.frame == jb.frame {
+                mids.push((fit.params[a] + fit.params[b]) / 2.0);
+            }
+        }
+    }
+    if mids.is_empty() {
+        return None;
+    }
+    let mid = mids.iter().sum::<f64>() / mids.len() as f64;
+    let r = fit.body.rotation;
+    let n = r * Vector3::z();
+    let (origin, d0) = match kind {
+        ToolKind::Chopstick => (fit.body.origin, r * Vector3::new(mid.cos(), mid.sin(), 0.0)),
+        _ => (
+            fit.body.origin + r * Vector3::new(0.0, mid, 0.0),
+            r * Vector3::x(),
+        ),
+    };
+    Some((origin + n * half_thickness, d0, n))
+}
+
+/// Plane-fit passes (each re-rectifies with the refined plane and re-reads the dots).
+const PLANE_PASSES: usize = 2;
+
+/// Every loaded frame's dots, assigned to jaws and slots.
+fn dots_of(est: &GripperEstimator, loaded: &[(Option<Corners>, Option<Frame>)]) -> Vec<JawDots> {
+    loaded
+        .par_iter()
+        .filter_map(|(_, img)| img.as_ref())
+        .map(|(w, h, data)| {
+            est.jaw_dots(&ImageView {
+                width: *w,
+                height: *h,
+                data,
+                order: super::ChannelOrder::Bgr,
+            })
+        })
+        .collect()
+}
+
 /// Calibrate a tool on one lens from a folder of its frames (`frames.csv` + images).
 pub fn calibrate_tool(
     camera: &Camera,
@@ -462,18 +739,7 @@ pub fn calibrate_tool(
     for _ in 0..HINGE_PASSES {
         let current = with_body(def, hinge, d0, n);
         let est = GripperEstimator::new(camera, &current)?;
-        let obs: Vec<JawDots> = loaded
-            .par_iter()
-            .filter_map(|(_, img)| img.as_ref())
-            .map(|(w, h, data)| {
-                est.jaw_dots(&ImageView {
-                    width: *w,
-                    height: *h,
-                    data,
-                    order: super::ChannelOrder::Bgr,
-                })
-            })
-            .collect();
+        let obs = dots_of(&est, &loaded);
         let Some(s) = hinge_step(&est, def.kind, &obs) else {
             break;
         };
@@ -489,6 +755,30 @@ pub fn calibrate_tool(
                 * d0;
         jaw_lines = s.lines;
         dot_rms = s.rms;
+    }
+    // The plane itself from the dots' known spacing over all frames.
+    let mut n = n;
+    for _ in 0..PLANE_PASSES {
+        let current = with_body(def, hinge, d0, n);
+        let est = GripperEstimator::new(camera, &current)?;
+        let obs = dots_of(&est, &loaded);
+        let jaws = jaw_observations(&est, def.kind, &obs);
+        if jaws.len() < MIN_JAW_LINES {
+            break;
+        }
+        let Some(fit) = fit_plane(def.kind, plane_body(&est), &jaws) else {
+            break;
+        };
+        let Some((h, d, nn)) = geometry_from_fit(def.kind, &fit, &jaws, def.jaws.half_thickness_m)
+        else {
+            break;
+        };
+        if (h - tag_hinge).norm() > MAX_HINGE_SHIFT_M {
+            break;
+        }
+        (hinge, d0, n) = (h, d, nn);
+        jaw_lines = jaws.len();
+        dot_rms = fit.rms_m;
     }
     let calibrated = with_body(def, hinge, d0, n);
     let body = calibrated.front_from_body();

@@ -33,6 +33,10 @@ const SLOT_TOLERANCE: f64 = 0.3;
 const MIN_DOTS_PER_JAW: usize = 2;
 /// A dot further than this many dot radii from its jaw line is an outlier (refit without it).
 const OUTLIER_RADII: f64 = 0.8;
+/// Dots further than this many dot radii from the line most of their jaw's dots agree on are
+/// not that jaw's (looser than [`OUTLIER_RADII`]: it must pass a jaw seen through geometry a few
+/// millimetres off, before calibration).
+const CONSENSUS_RADII: f64 = 1.5;
 /// Least fraction of the rectified window that must fall inside the image.
 const MIN_VISIBLE: f64 = 0.5;
 
@@ -547,11 +551,23 @@ impl GripperEstimator {
         let mut best: [Vec<Option<SlotPick>>; 2] = [vec![None; n], vec![None; n]];
         let expected =
             std::f64::consts::PI * (self.def.dots.radius_m * self.rect.plane.px_per_m).powi(2);
-        for d in dots {
-            let Some(k) = self.slot(along(d)) else {
-                continue;
-            };
+        let candidates: Vec<(usize, &Dot)> = dots
+            .iter()
+            .filter_map(|d| self.slot(along(d)).map(|k| (k, d)))
+            .collect();
+        let lines = [0, 1].map(|side| {
+            let on_side: Vec<&Dot> = candidates
+                .iter()
+                .filter(|(_, d)| usize::from(d.v > 0.0) == side)
+                .map(|(_, d)| *d)
+                .collect();
+            self.consensus_line(&on_side)
+        });
+        for (k, d) in candidates {
             let side = usize::from(d.v > 0.0);
+            if lines[side].is_some_and(|l| self.line_distance(l, d) > self.consensus_gate()) {
+                continue;
+            }
             let score = (d.area as f64 / expected - 1.0).abs();
             if best[side][k].is_none_or(|(s, _)| score < s) {
                 best[side][k] = Some((score, [d.u, d.v]));
@@ -563,6 +579,55 @@ impl GripperEstimator {
                 .filter_map(|(k, pick)| pick.map(|(_, p)| (k, p)))
                 .collect()
         })
+    }
+
+    /// Largest distance (m) of a jaw's dot from the line most of that jaw's dots agree on.
+    fn consensus_gate(&self) -> f64 {
+        CONSENSUS_RADII * self.def.dots.radius_m
+    }
+
+    /// Distance (m) of a dot from a candidate jaw line: chopstick, a ray from the hinge at an
+    /// angle (rad) from `u`; parallel jaw, a line along `u` at an offset `v` (m).
+    fn line_distance(&self, line: f64, d: &Dot) -> f64 {
+        match self.def.kind {
+            ToolKind::Chopstick => {
+                let (s, c) = line.sin_cos();
+                if d.u * c + d.v * s <= 0.0 {
+                    f64::INFINITY
+                } else {
+                    (d.u * s - d.v * c).abs()
+                }
+            }
+            _ => (d.v - line).abs(),
+        }
+    }
+
+    /// The jaw line (see [`Self::line_distance`]) through one of the dots that the most dots
+    /// lie near, so a red blob elsewhere in the window (background, a reflection) can neither
+    /// take a real dot's slot nor pull the line; `None` for fewer than two dots.
+    fn consensus_line(&self, dots: &[&Dot]) -> Option<f64> {
+        if dots.len() < MIN_DOTS_PER_JAW {
+            return None;
+        }
+        let gate = self.consensus_gate();
+        dots.iter()
+            .map(|d| match self.def.kind {
+                ToolKind::Chopstick => d.v.atan2(d.u),
+                _ => d.v,
+            })
+            .map(|line| {
+                let (mut support, mut spread) = (0usize, 0.0);
+                for d in dots {
+                    let e = self.line_distance(line, d);
+                    if e <= gate {
+                        support += 1;
+                        spread += e;
+                    }
+                }
+                (line, support, spread)
+            })
+            .max_by(|a, b| a.1.cmp(&b.1).then(b.2.total_cmp(&a.2)))
+            .map(|(line, _, _)| line)
     }
 
     fn confidence(&self, lines: [&JawLine; 2]) -> f64 {
