@@ -4,10 +4,10 @@
 //! One simulated X5 unit (480 px lenses, 24 aprilgrid views per lens, a 4 s camera–IMU
 //! excitation, a 4-h static IMU log at 20 Hz, two 20 s QR-clock rig sessions in the 30 fps
 //! mode) certifies end to end with every value inside the individual issues' tolerances;
-//! the same unit certified again after a simulated firmware change (focal lengths +0.4 %) gets a
-//! second folder and `--previous` flags exactly its intrinsics (the no-change case with a second
-//! full capture session runs in benches/certify.rs). Three reduced captures fail with the named check: too few views, a moving
-//! "static" IMU log, a rig recording without chirps.
+//! the same unit captured again (fresh noise and board poses) certifies into a second folder and
+//! `--previous` reports no significant change; after a simulated firmware change (focal lengths
+//! +0.4 %) `--previous` flags exactly its intrinsics. Three reduced captures fail with the named
+//! check: too few views, a moving "static" IMU log, a rig recording without chirps.
 
 use std::path::{Path, PathBuf};
 
@@ -224,8 +224,41 @@ fn simulated_unit_certifies_recertifies_and_flags_a_firmware_change() {
         assert!(a.folder.join("report").join(i).is_file(), "{i} missing");
     }
     let first_calibration = std::fs::read(a.folder.join("calibration.json")).unwrap();
-    // The captures are no longer needed: free the disk before the next unit.
+    // The captures are no longer needed: free the disk before the next session.
     std::fs::remove_dir_all(&cap).unwrap();
+
+    // The same unit (same lenses, IMU and delays) captured again with fresh noise and fresh
+    // board poses: it certifies, gets a second folder, and `--previous` finds no parameter that
+    // moved beyond its uncertainty.
+    let again = sim(tmp.path(), "again", |o| {
+        o.unit_seed = Some(7);
+        o.seed = 8;
+    });
+    let b = certify(&options(&again, &units, Some(&a.folder))).unwrap();
+    println!("{}", describe(&b));
+    assert!(b.passed, "failed: {:?}\n{}", b.failed_checks, describe(&b));
+    assert_eq!(b.folder, units.join("X5-CERT").join(format!("{DATE}-2")));
+    let c = b.comparison.as_ref().unwrap();
+    println!(
+        "same unit again: {} parameters compared, significant {:?}",
+        c.parameters.len(),
+        c.significant
+    );
+    for group in [
+        "intrinsics",
+        "extrinsics",
+        "time_shift",
+        "imu_noise",
+        "av_delay",
+    ] {
+        assert!(
+            c.parameters.iter().any(|p| p.group == group),
+            "{group} not compared"
+        );
+    }
+    assert!(c.significant.is_empty(), "flagged {:?}", c.significant);
+    assert!(c.changed_groups.is_empty());
+    std::fs::remove_dir_all(&again).unwrap();
 
     // The same unit after a firmware change that scales its lens images by 0.4 %: its lenses
     // and static log (re-rendered; the excitation and rig are left out to keep the test short,
@@ -239,7 +272,7 @@ fn simulated_unit_certifies_recertifies_and_flags_a_firmware_change() {
     let d = certify(&options(&changed, &units, Some(&a.folder))).unwrap();
     assert!(!d.passed);
     // Certifying the unit again writes a second folder and never touches the first.
-    assert_eq!(d.folder, units.join("X5-CERT").join(format!("{DATE}-2")));
+    assert_eq!(d.folder, units.join("X5-CERT").join(format!("{DATE}-3")));
     assert_eq!(
         std::fs::read(a.folder.join("calibration.json")).unwrap(),
         first_calibration
@@ -260,7 +293,7 @@ fn simulated_unit_certifies_recertifies_and_flags_a_firmware_change() {
     );
     let listed = report::list_text(&report::list_units(&units).unwrap());
     assert!(
-        listed.contains(&format!("{DATE}-2")) && listed.contains("FAILED"),
+        listed.contains(&format!("{DATE}-3")) && listed.contains("FAILED"),
         "{listed}"
     );
 }
