@@ -341,7 +341,8 @@ pub fn summarize(results: &[FrameLocalization], seconds: f64) -> LocalizeSummary
     }
 }
 
-/// Localize every frame of a stream against a frozen map (which must match the lens).
+/// Localize every frame of a stream against a frozen map (which must match the lens), then
+/// retry lost runs backwards from the frame after them ([`backfill`]).
 pub fn localize_stream(
     map: &VisualMap,
     stream: &LensStream,
@@ -363,8 +364,59 @@ pub fn localize_stream(
         progress(i + 1, n);
         Ok(())
     })?;
+    backfill(map, stream, options, &mut results)?;
     let summary = summarize(&results, start.elapsed().as_secs_f64());
     Ok((results, summary))
+}
+
+/// Frames after a lost run that the backward pass starts from: relocalizing a frame or two
+/// after the run gives the backward tracking its motion prior.
+const BACKFILL_LEAD: usize = 2;
+
+/// Retry lost frames backwards from the localized frame that follows them: a fresh localizer
+/// relocalizes from just after the run and tracks back into it with the motion prior (a stream
+/// that starts, or resumes, where relocalization alone fails is often trackable from the other
+/// side). Stops at the first frame that is lost again; the same acceptance rules apply, so a
+/// filled frame is as trustworthy as any other. Sequential and seeded by frame index, so the
+/// result stays deterministic.
+fn backfill(
+    map: &VisualMap,
+    stream: &LensStream,
+    options: &LocalizerOptions,
+    results: &mut [FrameLocalization],
+) -> Result<()> {
+    let n = results.len();
+    for b in 0..n {
+        if results[b].status == LocalizationStatus::Lost {
+            continue;
+        }
+        let mut a = b;
+        while a > 0 && results[a - 1].status == LocalizationStatus::Lost {
+            a -= 1;
+        }
+        if a == b {
+            continue;
+        }
+        let mut localizer = Localizer::new(
+            map,
+            &stream.lens,
+            stream.camera.clone(),
+            stream.mask.clone(),
+            *options,
+        )?;
+        let top = (b + BACKFILL_LEAD).min(n - 1);
+        for j in (a..=top).rev() {
+            let image = stream.load(j)?;
+            let r = localizer.process(j as u32, stream.frames[j].t, &image)?;
+            if j < b {
+                if r.status == LocalizationStatus::Lost {
+                    break;
+                }
+                results[j] = r;
+            }
+        }
+    }
+    Ok(())
 }
 
 /// Header of `poses.csv`.

@@ -777,6 +777,14 @@ impl Localizer {
                 Ok(e) if e.inliers.len() >= first.inliers.len() => e,
                 _ => first,
             };
+            // Densify again over the keyframes nearest to that pose: a view from elsewhere (the
+            // other wrist) is often nearest to keyframes place recognition did not rank first.
+            let near = self.nearby_landmarks(&e.cam_from_map, self.options.guided_keyframes);
+            let wide = self.guided_matches(&e.cam_from_map, &near, feats, &grid);
+            let e = match self.estimate(&wide, &self.ransac(frame, salt + 1, min_inliers)) {
+                Ok(w) if w.inliers.len() > e.inliers.len() => w,
+                _ => e,
+            };
             match self.accept(&e, min_inliers) {
                 Ok(()) => {
                     if best

@@ -57,6 +57,23 @@ pub struct MapperOptions {
     pub init_parallax_rad: f64,
     /// Median rotation-compensated parallax (rad) to the last keyframe that makes a keyframe.
     pub keyframe_parallax_rad: f64,
+    /// Rotation (rad) from the last keyframe that makes a keyframe (with new tracks): the view,
+    /// and with it the descriptors a query will be matched to, has changed.
+    pub keyframe_rotation_rad: f64,
+    /// A keyframe is also made when the frame's inliers fall below this fraction of the
+    /// landmarks the last keyframe observes (the map is losing its hold on the view).
+    pub keyframe_support_ratio: f64,
+    /// Smallest time (s) between keyframes, unless the support is about to be lost.
+    pub min_keyframe_interval_s: f64,
+    /// Smallest number of unmapped tracks shared with the last keyframe for a parallax-driven
+    /// keyframe (it must bring something new to triangulate).
+    pub keyframe_min_new_tracks: usize,
+    /// The initial pair's first frame moves forward when fewer than this fraction of its tracks
+    /// survive to the candidate partner (no partner with enough parallax before them).
+    pub init_min_shared_ratio: f64,
+    /// Consecutive frames without a pose after which mapping stops (`lost_at`); isolated
+    /// failures (a blurred frame) are skipped while KLT keeps the tracks.
+    pub max_consecutive_failures: usize,
     /// Keyframes optimized by each local bundle adjustment (older ones held fixed).
     pub local_window: usize,
     /// Bundle-adjustment settings.
@@ -72,8 +89,21 @@ impl Default for MapperOptions {
             triangulation: TriangulationLimits::default(),
             // ~3°: enough baseline for a well-conditioned first map.
             init_parallax_rad: 3f64.to_radians(),
-            // ~1.5°: keyframes dense enough for tracks to survive, sparse enough to add depth.
-            keyframe_parallax_rad: 1.5f64.to_radians(),
+            // ~1°: keyframes dense enough for tracks to survive and to cover the sweep, sparse
+            // enough to add depth (the triangulation limit is 1° over all keyframes of a track).
+            keyframe_parallax_rad: 1.0f64.to_radians(),
+            // ~8°: a wrist sweep turns 5-10°/s; descriptors of a view stay matchable that far.
+            keyframe_rotation_rad: 8f64.to_radians(),
+            // Half the support gone: the next frames would soon rest on too few landmarks.
+            keyframe_support_ratio: 0.5,
+            // ~4 frames at 30 Hz: a slow sweep must not make a keyframe of every frame.
+            min_keyframe_interval_s: 0.12,
+            // A few dozen new points make a keyframe worth its bundle-adjustment cost.
+            keyframe_min_new_tracks: 30,
+            // Half the tracks gone: the pair would share too few points to start a good map.
+            init_min_shared_ratio: 0.5,
+            // A few blurred frames in a row are tolerated; more means the view is gone.
+            max_consecutive_failures: 5,
             local_window: 8,
             ba: BaOptions::default(),
             max_error_rad: 0.008,
@@ -150,148 +180,298 @@ fn seeded(options: &RansacOptions, frame: u32) -> RansacOptions {
     }
 }
 
-/// Build a map from tracked frames. Stops (with `lost_at`) at the first frame whose pose
-/// cannot be estimated; fails if no initial pair is found.
-pub fn reconstruct(frames: &[MappingFrame], options: &MapperOptions) -> Result<Reconstruction> {
-    let first = frames
-        .first()
-        .ok_or_else(|| mapping_error("expected at least two frames, found none".into()))?;
-    // 1. Initialization: the first frame with enough parallax to frame 0.
-    let mut init = None;
-    for (k, f) in frames.iter().enumerate().skip(1) {
-        let (ids, b1, b2) = common(&first.observations, &f.observations);
-        if ids.len() < options.ransac.min_inliers {
-            break;
-        }
-        let Some(rel) = relative_pose_ransac(&b1, &b2, &seeded(&options.ransac, f.frame)) else {
+/// A two-view initialization: the second frame's pose relative to the first and the
+/// triangulated inliers.
+struct InitialPair {
+    second: usize,
+    cam2_from_cam1: Pose,
+    points: BTreeMap<u64, Vector3<f64>>,
+}
+
+/// Outcome of one initialization attempt.
+enum PairTrial {
+    /// The frames share too few tracks: the pair's first frame must move forward.
+    TooFewShared,
+    /// Not enough parallax or inliers yet.
+    NotYet,
+    /// A usable pair.
+    Found(InitialPair),
+}
+
+/// Try to initialize from `frames[first]` and `frames[second]`.
+fn try_initial_pair(
+    frames: &[MappingFrame],
+    first: usize,
+    second: usize,
+    options: &MapperOptions,
+) -> Result<PairTrial> {
+    let (a, f) = (&frames[first], &frames[second]);
+    let (ids, b1, b2) = common(&a.observations, &f.observations);
+    let needed = (options.init_min_shared_ratio * a.observations.len() as f64).ceil() as usize;
+    if ids.len() < options.ransac.min_inliers.max(needed) {
+        return Ok(PairTrial::TooFewShared);
+    }
+    let Some(rel) = relative_pose_ransac(&b1, &b2, &seeded(&options.ransac, f.frame)) else {
+        return Ok(PairTrial::NotYet);
+    };
+    // Cheap test before the refinement: rotation-compensated parallax of the inliers.
+    let rough: Vec<f64> = (0..ids.len())
+        .filter(|&i| rel.inliers[i])
+        .map(|i| angular_error(&(rel.cam2_from_cam1.rotation * b1[i]), &b2[i]))
+        .collect();
+    if median(rough).unwrap_or(0.0) < 0.8 * options.init_parallax_rad {
+        return Ok(PairTrial::NotYet);
+    }
+    let pose = refine_relative_pose(
+        &rel.cam2_from_cam1,
+        &b1,
+        &b2,
+        &rel.inliers,
+        options.ba.huber_rad,
+    )?;
+    let mut points = BTreeMap::new();
+    for i in 0..ids.len() {
+        if !rel.inliers[i] {
             continue;
-        };
-        let pose = refine_relative_pose(
-            &rel.cam2_from_cam1,
-            &b1,
-            &b2,
-            &rel.inliers,
-            options.ba.huber_rad,
-        )?;
-        let mut points = BTreeMap::new();
-        let mut parallaxes = Vec::new();
-        for i in 0..ids.len() {
-            if !rel.inliers[i] {
-                continue;
-            }
-            let obs = [
-                RayObservation {
-                    cam_from_world: Pose::identity(),
-                    bearing: b1[i],
-                },
-                RayObservation {
-                    cam_from_world: pose,
-                    bearing: b2[i],
-                },
-            ];
-            if let Some(t) = triangulate(&obs, &options.triangulation) {
-                parallaxes.push(t.parallax_rad);
-                points.insert(ids[i], t.point);
-            }
         }
-        let all_parallax: Vec<f64> = (0..ids.len())
-            .filter(|&i| rel.inliers[i])
-            .map(|i| angular_error(&(pose.rotation * b1[i]), &b2[i]))
-            .collect();
-        let med = median(all_parallax).unwrap_or(0.0);
-        if med >= options.init_parallax_rad && points.len() >= options.ransac.min_inliers {
-            init = Some((k, pose, points));
-            break;
+        let obs = [
+            RayObservation {
+                cam_from_world: Pose::identity(),
+                bearing: b1[i],
+            },
+            RayObservation {
+                cam_from_world: pose,
+                bearing: b2[i],
+            },
+        ];
+        if let Some(t) = triangulate(&obs, &options.triangulation) {
+            points.insert(ids[i], t.point);
         }
     }
-    let (k1, pose1, points) = init.ok_or_else(|| {
+    let all_parallax: Vec<f64> = (0..ids.len())
+        .filter(|&i| rel.inliers[i])
+        .map(|i| angular_error(&(pose.rotation * b1[i]), &b2[i]))
+        .collect();
+    let med = median(all_parallax).unwrap_or(0.0);
+    if med < options.init_parallax_rad || points.len() < options.ransac.min_inliers {
+        return Ok(PairTrial::NotYet);
+    }
+    Ok(PairTrial::Found(InitialPair {
+        second,
+        cam2_from_cam1: pose,
+        points,
+    }))
+}
+
+/// Build a map from tracked frames.
+///
+/// Initialization looks for the first pair with enough parallax: frame 0 against each later
+/// frame; when frame 0's tracks have thinned out without such a partner (a slow start, or
+/// rotation only), the pair's first frame moves forward. Mapping then continues frame by
+/// frame; isolated frames without a pose are skipped, and mapping stops (with `lost_at`) after
+/// `max_consecutive_failures` in a row. Fails if no initial pair is found.
+pub fn reconstruct(frames: &[MappingFrame], options: &MapperOptions) -> Result<Reconstruction> {
+    if frames.len() < 2 {
+        return Err(mapping_error(format!(
+            "expected at least two frames, found {}",
+            frames.len()
+        )));
+    }
+    // 1. Initialization: the first pair (k0, k1) with enough parallax.
+    let mut init = None;
+    let mut k0 = 0;
+    let mut k = 1;
+    while k < frames.len() {
+        match try_initial_pair(frames, k0, k, options)? {
+            PairTrial::TooFewShared => {
+                // Too few shared tracks: start again from the previous frame (which still
+                // shares enough with the current one), or this one.
+                k0 = if k - 1 > k0 { k - 1 } else { k };
+                if k0 == k {
+                    k += 1;
+                }
+            }
+            PairTrial::NotYet => k += 1,
+            PairTrial::Found(pair) => {
+                init = Some(pair);
+                break;
+            }
+        }
+    }
+    let pair = init.ok_or_else(|| {
         mapping_error(
             "no pair of frames with enough parallax and inliers to initialize; the mapping \
-             episode needs translation, not only rotation, early on"
+             episode needs translation, not only rotation"
                 .into(),
         )
     })?;
+    let k1 = pair.second;
+    tracing::debug!(
+        first = frames[k0].frame,
+        second = frames[k1].frame,
+        points = pair.points.len(),
+        "mapping initialized"
+    );
+    let (f0, f1) = (&frames[k0], &frames[k1]);
     let mut recon = Reconstruction {
         keyframes: vec![
             ReconKeyframe {
-                frame: first.frame,
-                t: first.t,
+                frame: f0.frame,
+                t: f0.t,
                 cam_from_world: Pose::identity(),
-                observations: sorted(&first.observations),
+                observations: sorted(&f0.observations),
             },
             ReconKeyframe {
-                frame: frames[k1].frame,
-                t: frames[k1].t,
-                cam_from_world: pose1,
-                observations: sorted(&frames[k1].observations),
+                frame: f1.frame,
+                t: f1.t,
+                cam_from_world: pair.cam2_from_cam1,
+                observations: sorted(&f1.observations),
             },
         ],
-        landmarks: points,
-        frame_poses: vec![(first.frame, Pose::identity()), (frames[k1].frame, pose1)],
+        landmarks: pair.points,
+        frame_poses: Vec::new(),
         lost_at: None,
     };
     local_ba(&mut recon, options, true)?;
-    // Frames between the initial pair: poses from the first map.
-    let mut between = Vec::new();
-    for f in &frames[1..k1] {
-        if let Some(pose) = frame_pose(&recon, f, options).map(|a| a.cam_from_world) {
-            between.push((f.frame, pose));
+    // Frames before the initial pair: poses from the first map where possible.
+    for f in &frames[..k0] {
+        if let Some(abs) = frame_pose(&recon, f, options) {
+            recon.frame_poses.push((f.frame, abs.cam_from_world));
         }
     }
-    recon.frame_poses.splice(1..1, between);
+    recon
+        .frame_poses
+        .push((f0.frame, recon.keyframes[0].cam_from_world));
+    // Frames between the pair: poses, and keyframes inserted before the pair's second frame
+    // by the same rules as later (a slow start must not leave its views out of the map).
+    let mut last_kf = 0;
+    for f in &frames[k0 + 1..k1] {
+        let Some(abs) = frame_pose(&recon, f, options) else {
+            continue;
+        };
+        recon.frame_poses.push((f.frame, abs.cam_from_world));
+        if needs_keyframe(&recon, &recon.keyframes[last_kf], f, &abs, options) {
+            last_kf += 1;
+            let kf = keyframe_from(&recon, f, &abs);
+            recon.keyframes.insert(last_kf, kf);
+            triangulate_new(&mut recon, last_kf, options);
+        }
+    }
+    recon
+        .frame_poses
+        .push((f1.frame, recon.keyframes[last_kf + 1].cam_from_world));
+    if last_kf > 0 {
+        local_ba(&mut recon, options, true)?;
+    }
 
-    // 2. Incremental: pose of every frame, keyframes by parallax.
+    // 2. Incremental: pose of every frame, keyframes by parallax and support.
+    let mut failures = 0;
     for f in &frames[k1 + 1..] {
         let Some(abs) = frame_pose(&recon, f, options) else {
-            recon.lost_at = Some(f.frame);
-            break;
+            failures += 1;
+            if failures >= options.max_consecutive_failures.max(1) {
+                recon.lost_at = Some(f.frame);
+                break;
+            }
+            continue;
         };
+        failures = 0;
         let pose = abs.cam_from_world;
         recon.frame_poses.push((f.frame, pose));
         let Some(last) = recon.keyframes.last() else {
             break;
         };
-        // Rotation-compensated parallax of shared tracks against the last keyframe.
-        let (_, b_last, b_cur) = common(&last.observations, &f.observations);
-        let rel_rot = pose.rotation * last.cam_from_world.rotation.inverse();
-        let parallax = median(
-            b_last
-                .iter()
-                .zip(&b_cur)
-                .map(|(a, b)| angular_error(&(rel_rot * a), b))
-                .collect(),
-        )
-        .unwrap_or(0.0);
-        let tracked_ratio = abs.num_inliers as f64 / last.observations.len().max(1) as f64;
-        if parallax < options.keyframe_parallax_rad && tracked_ratio > 0.3 {
+        if !needs_keyframe(&recon, last, f, &abs, options) {
             continue;
         }
-        // Keep the inlier observations of mapped tracks and all unmapped ones.
-        let mut observations = Vec::new();
-        let mut j = 0;
-        for o in &f.observations {
-            if recon.landmarks.contains_key(&o.track) {
-                if abs.inliers[j] {
-                    observations.push(*o);
-                }
-                j += 1;
-            } else {
-                observations.push(*o);
-            }
-        }
-        observations.sort_by_key(|o| o.track);
-        recon.keyframes.push(ReconKeyframe {
-            frame: f.frame,
-            t: f.t,
-            cam_from_world: pose,
-            observations,
-        });
-        triangulate_new(&mut recon, options);
+        let kf = keyframe_from(&recon, f, &abs);
+        recon.keyframes.push(kf);
+        let newest = recon.keyframes.len() - 1;
+        triangulate_new(&mut recon, newest, options);
         local_ba(&mut recon, options, false)?;
     }
     // 3. Global bundle adjustment.
     local_ba(&mut recon, options, true)?;
     Ok(recon)
+}
+
+/// A keyframe from a posed frame: the inlier observations of mapped tracks and all unmapped
+/// ones, in track order.
+fn keyframe_from(
+    recon: &Reconstruction,
+    f: &MappingFrame,
+    abs: &crate::vision::geometry::AbsolutePose,
+) -> ReconKeyframe {
+    let mut observations = Vec::new();
+    let mut j = 0;
+    for o in &f.observations {
+        if recon.landmarks.contains_key(&o.track) {
+            if abs.inliers[j] {
+                observations.push(*o);
+            }
+            j += 1;
+        } else {
+            observations.push(*o);
+        }
+    }
+    observations.sort_by_key(|o| o.track);
+    ReconKeyframe {
+        frame: f.frame,
+        t: f.t,
+        cam_from_world: abs.cam_from_world,
+        observations,
+    }
+}
+
+/// Keyframe decision for a frame with pose `abs` after keyframe `last`: a keyframe when the
+/// map's support has dropped to `keyframe_support_ratio` of what the last keyframe saw, or when
+/// the rotation-compensated parallax reaches `keyframe_parallax_rad` and there are new tracks
+/// to triangulate, or the view has turned by `keyframe_rotation_rad`; never closer than `min_keyframe_interval_s` to the last keyframe unless the
+/// support is nearly gone.
+fn needs_keyframe(
+    recon: &Reconstruction,
+    last: &ReconKeyframe,
+    f: &MappingFrame,
+    abs: &crate::vision::geometry::AbsolutePose,
+    options: &MapperOptions,
+) -> bool {
+    let last_mapped = last
+        .observations
+        .iter()
+        .filter(|o| recon.landmarks.contains_key(&o.track))
+        .count();
+    let support = abs.num_inliers as f64 / last_mapped.max(1) as f64;
+    // Critical: a few more lost points and the next frame cannot be posed.
+    if abs.num_inliers < 4 * options.ransac.min_inliers {
+        return true;
+    }
+    if f.t - last.t < options.min_keyframe_interval_s {
+        return false;
+    }
+    if support < options.keyframe_support_ratio {
+        return true;
+    }
+    let (ids, b_last, b_cur) = common(&last.observations, &f.observations);
+    let new_tracks = ids
+        .iter()
+        .filter(|t| !recon.landmarks.contains_key(t))
+        .count();
+    if new_tracks < options.keyframe_min_new_tracks {
+        return false;
+    }
+    let rel_rot = abs.cam_from_world.rotation * last.cam_from_world.rotation.inverse();
+    if rel_rot.angle() >= options.keyframe_rotation_rad {
+        return true;
+    }
+    let parallax = median(
+        b_last
+            .iter()
+            .zip(&b_cur)
+            .map(|(a, b)| angular_error(&(rel_rot * a), b))
+            .collect(),
+    )
+    .unwrap_or(0.0);
+    parallax >= options.keyframe_parallax_rad
 }
 
 /// Absolute pose of a frame against the current landmarks; inlier flags follow the frame's
@@ -318,10 +498,10 @@ fn sorted(obs: &[TrackObservation]) -> Vec<TrackObservation> {
     v
 }
 
-/// Triangulate tracks of the newest keyframe that have no landmark yet, from every keyframe
-/// that observes them.
-fn triangulate_new(recon: &mut Reconstruction, options: &MapperOptions) {
-    let Some(newest) = recon.keyframes.last() else {
+/// Triangulate tracks of keyframe `index` that have no landmark yet, from every keyframe that
+/// observes them.
+fn triangulate_new(recon: &mut Reconstruction, index: usize, options: &MapperOptions) {
+    let Some(newest) = recon.keyframes.get(index) else {
         return;
     };
     let candidates: Vec<u64> = newest
@@ -330,9 +510,11 @@ fn triangulate_new(recon: &mut Reconstruction, options: &MapperOptions) {
         .map(|o| o.track)
         .filter(|t| !recon.landmarks.contains_key(t))
         .collect();
-    let window_start = recon.keyframes.len().saturating_sub(options.local_window);
+    // Every keyframe that saw the track (not only the window): a slow sweep needs the oldest
+    // view for parallax.
     for track in candidates {
-        let rays: Vec<RayObservation> = recon.keyframes[window_start..]
+        let rays: Vec<RayObservation> = recon
+            .keyframes
             .iter()
             .filter_map(|kf| {
                 kf.observations
