@@ -163,8 +163,8 @@ fn end_to_end() {
     let mut maps: Vec<(String, String, VisualMap, Sim3)> = Vec::new();
     for (camera, lens) in [("left", "front"), ("right", "front"), ("left", "rear")] {
         let mut stream = LensStream::open(&mapping, camera, lens, None, None).unwrap();
-        // The mapper keyframes too eagerly on a slow sweep filmed at 30 Hz (see docs/vision.md):
-        // KIWI_BENCH_VISION_MAP_STRIDE feeds it every n-th frame.
+        // The mapper takes every frame (the product); KIWI_BENCH_VISION_MAP_STRIDE feeds it
+        // every n-th frame instead, for comparison.
         let stride = env_f64("KIWI_BENCH_VISION_MAP_STRIDE", 1.0).max(1.0) as usize;
         stream.frames = stream.frames.iter().step_by(stride).cloned().collect();
         let cpu0 = cpu_now();
