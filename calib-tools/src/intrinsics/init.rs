@@ -215,7 +215,23 @@ const DS_FIT_ITERATIONS: usize = 200;
 const DS_FIT_STARTS: usize = 8;
 
 /// A Double Sphere lens that projects like `kb4` (any model) over directions up to `max_theta` off-axis.
+#[cfg(test)]
 pub(crate) fn ds_from_camera(kb4: &dyn CameraModel, max_theta: f64) -> Option<DoubleSphere> {
+    ds_candidates_from_camera(kb4, max_theta).into_iter().next()
+}
+
+/// Two lens-to-lens fits count as the same candidate if their ξ differ by less than this (the
+/// basins of the Double Sphere model lie far apart in ξ).
+const DS_SAME_XI: f64 = 0.02;
+
+/// Double Sphere lenses that project like `kb4` (any model) over directions up to `max_theta`
+/// off-axis: the distinct local minima of the lens-to-lens fit, best first. Several are
+/// returned because the best lens-to-lens match need not lie in the basin of the best joint
+/// fit (ξ, α and the focal length trade off over the observed field of view).
+pub(crate) fn ds_candidates_from_camera(
+    kb4: &dyn CameraModel,
+    max_theta: f64,
+) -> Vec<DoubleSphere> {
     let (w, h) = kb4.resolution();
     let p = kb4.params();
     let mut samples: Vec<(Vector3<f64>, Point2<f64>)> = Vec::new();
@@ -230,7 +246,7 @@ pub(crate) fn ds_from_camera(kb4: &dyn CameraModel, max_theta: f64) -> Option<Do
         }
     }
     if samples.len() < 10 {
-        return None;
+        return Vec::new();
     }
     let err = |cam: &DoubleSphere| -> Option<f64> {
         samples
@@ -271,12 +287,22 @@ pub(crate) fn ds_from_camera(kb4: &dyn CameraModel, max_theta: f64) -> Option<Do
         }
     }
     starts.sort_by(|a, b| a.0.total_cmp(&b.0));
-    starts
+    let mut fits: Vec<(f64, DoubleSphere)> = starts
         .into_iter()
         .take(DS_FIT_STARTS)
         .filter_map(|(e, cam)| refine_ds(cam, e, &samples))
-        .min_by(|a, b| a.0.total_cmp(&b.0))
-        .map(|(_, cam)| cam)
+        .collect();
+    fits.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let mut out: Vec<DoubleSphere> = Vec::new();
+    for (_, cam) in fits {
+        if out
+            .iter()
+            .all(|c| (c.params()[4] - cam.params()[4]).abs() > DS_SAME_XI)
+        {
+            out.push(cam);
+        }
+    }
+    out
 }
 
 /// Levenberg–Marquardt of a Double Sphere lens's parameters to match `samples` (direction,

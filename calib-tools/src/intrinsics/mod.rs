@@ -43,6 +43,9 @@ pub const OUTLIER_FLOOR_PX: f64 = 0.5;
 pub const VIEW_RMS_FACTOR: f64 = 3.0;
 /// Rounds of rejection and re-fitting.
 const REJECTION_ROUNDS: usize = 6;
+/// Distinct Double Sphere starts fitted jointly (the model has more than one basin; the best
+/// lens-to-lens match sometimes leads the joint fit into a wrong one, ~1 in 25 captures).
+const DS_JOINT_STARTS: usize = 3;
 /// Median of a Rayleigh distribution divided by its per-axis sigma: √(2 ln 2).
 const RAYLEIGH_MEDIAN: f64 = 1.177_410_022_515_474_8;
 /// Coverage grid: the image is cut into this many regions per side.
@@ -425,6 +428,10 @@ fn too_few_views(n: usize, stage: &str) -> CalibError {
     ))
 }
 
+/// A finished joint fit: camera, poses, views (with their rejections), rejected corners and
+/// the final solve's iterations.
+type DsFit = (Camera, Vec<Pose>, Vec<ViewObs>, Vec<RejectedCorner>, usize);
+
 /// Robust fit with rejection rounds; returns the final solve's iterations.
 fn fit_with_rejection(
     camera: &mut Camera,
@@ -510,15 +517,48 @@ pub fn calibrate(set: &CornerSet, options: &IntrinsicsOptions) -> Result<Intrins
         let Camera::Kb4(kb4) = &camera else {
             return Err(CalibError::Internal("expected the KB4 stage".into()));
         };
-        let ds = init::ds_from_camera(kb4, max_theta).ok_or_else(|| {
-            input_error(
+        let candidates = init::ds_candidates_from_camera(kb4, max_theta);
+        if candidates.is_empty() {
+            return Err(input_error(
                 "the lens cannot be described by the Double Sphere model over the observed \
                  field of view; use --model kb4"
                     .into(),
-            )
-        })?;
-        camera = Camera::DoubleSphere(ds);
-        iterations = fit_with_rejection(&mut camera, &mut poses, &mut views, &mut rejected)?;
+            ));
+        }
+        // Joint fit from each of the best few lens-to-lens starts; the winner has the lowest
+        // robust cost over every corner the KB4 stage started from (rejected ones included,
+        // so a start cannot win by rejecting what it misfits).
+        let mut best: Option<(f64, DsFit)> = None;
+        let mut first_error = None;
+        for ds in candidates.into_iter().take(DS_JOINT_STARTS) {
+            let mut c = Camera::DoubleSphere(ds);
+            let mut p = poses.clone();
+            let mut v = views.clone();
+            let mut r = rejected.clone();
+            match fit_with_rejection(&mut c, &mut p, &mut v, &mut r) {
+                Ok(it) => {
+                    let score =
+                        solve::cost(&c, &p, &views, Some(HUBER_PX)).unwrap_or(f64::INFINITY);
+                    if best.as_ref().is_none_or(|b| score < b.0) {
+                        best = Some((score, (c, p, v, r, it)));
+                    }
+                }
+                Err(e) => {
+                    first_error.get_or_insert(e);
+                }
+            }
+        }
+        match (best, first_error) {
+            (Some((_, (c, p, v, r, it))), _) => {
+                camera = c;
+                poses = p;
+                views = v;
+                rejected = r;
+                iterations = it;
+            }
+            (None, Some(e)) => return Err(e),
+            (None, None) => return Err(CalibError::Internal("no Double Sphere start".into())),
+        }
     }
     finish(camera, &poses, &views, rejected, iterations)
 }

@@ -77,7 +77,12 @@ struct ViewSystem {
 /// Total robust cost, or `None` if an active corner does not project. Per-view costs are
 /// computed in parallel but summed in view order, so the result (and every LM decision built on
 /// it) does not depend on the number of threads or on work stealing.
-fn cost(camera: &Camera, poses: &[Pose], views: &[ViewObs], delta: Option<f64>) -> Option<f64> {
+pub(crate) fn cost(
+    camera: &Camera,
+    poses: &[Pose],
+    views: &[ViewObs],
+    delta: Option<f64>,
+) -> Option<f64> {
     let per_view: Vec<Option<f64>> = views
         .par_iter()
         .zip(poses.par_iter())
