@@ -457,10 +457,10 @@ fn fit_plane(kind: ToolKind, start: PlaneBody, jaws: &[JawObs]) -> Option<PlaneF
                     jac[1][5] = (r1[1] - r0[1]) / eps;
                     cols[5] = free.len() + jl;
                     for (row, r) in jac.iter().zip(r0) {
-                        for a in 0..6 {
-                            jtr[cols[a]] += row[a] * r;
-                            for c in 0..6 {
-                                jtj[(cols[a], cols[c])] += row[a] * row[c];
+                        for (&ca, &ja) in cols.iter().zip(row) {
+                            jtr[ca] += ja * r;
+                            for (&cc, &jc) in cols.iter().zip(row) {
+                                jtj[(ca, cc)] += ja * jc;
                             }
                         }
                     }
