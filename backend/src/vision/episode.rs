@@ -350,13 +350,7 @@ pub fn localize_stream(
     progress: &mut dyn FnMut(usize, usize),
 ) -> Result<(Vec<FrameLocalization>, LocalizeSummary)> {
     let start = Instant::now();
-    let mut localizer = Localizer::new(
-        map,
-        &stream.lens,
-        stream.camera.clone(),
-        stream.mask.clone(),
-        *options,
-    )?;
+    let mut localizer = stream_localizer(map, stream, options)?;
     let n = stream.frames.len();
     let mut results = Vec::with_capacity(n);
     stream.for_each_frame(|i, img| {
@@ -367,6 +361,21 @@ pub fn localize_stream(
     backfill(map, stream, options, &mut results)?;
     let summary = summarize(&results, start.elapsed().as_secs_f64());
     Ok((results, summary))
+}
+
+/// A fresh localizer for a stream's lens, camera and mask.
+fn stream_localizer(
+    map: &VisualMap,
+    stream: &LensStream,
+    options: &LocalizerOptions,
+) -> Result<Localizer> {
+    Localizer::new(
+        map,
+        &stream.lens,
+        stream.camera.clone(),
+        stream.mask.clone(),
+        *options,
+    )
 }
 
 /// Frames after a lost run that the backward pass starts from: relocalizing a frame or two
@@ -397,13 +406,7 @@ fn backfill(
         if a == b {
             continue;
         }
-        let mut localizer = Localizer::new(
-            map,
-            &stream.lens,
-            stream.camera.clone(),
-            stream.mask.clone(),
-            *options,
-        )?;
+        let mut localizer = stream_localizer(map, stream, options)?;
         let top = (b + BACKFILL_LEAD).min(n - 1);
         for j in (a..=top).rev() {
             let image = stream.load(j)?;
