@@ -3,8 +3,10 @@
 //! error must stay below 0.5 % of the trajectory extent (the issue's mapping criterion).
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
-use kiwi_backend::vision::align::align_and_measure;
-use kiwi_backend::vision::mapping::{MapperOptions, MappingFrame, TrackObservation, reconstruct};
+use kiwi_backend::vision::align::{TrajectoryError, align_and_measure};
+use kiwi_backend::vision::mapping::{
+    MapperOptions, MappingFrame, Reconstruction, TrackObservation, reconstruct,
+};
 use kiwi_core::geometry::{Pose, so3_exp};
 use nalgebra::{Point3, Translation3, UnitQuaternion, Vector3};
 use rand::{Rng, SeedableRng};
@@ -114,17 +116,7 @@ fn mapping_recovers_the_keyframe_trajectory() {
         "{} keyframes",
         recon.keyframes.len()
     );
-    let est: Vec<Vector3<f64>> = recon
-        .keyframes
-        .iter()
-        .map(|k| k.cam_from_world.inverse().translation.vector)
-        .collect();
-    let tru: Vec<Vector3<f64>> = recon
-        .keyframes
-        .iter()
-        .map(|k| truth[k.frame as usize].translation.vector)
-        .collect();
-    let (_, err) = align_and_measure(&est, &tru).unwrap();
+    let err = keyframe_ate(&recon, &truth);
     eprintln!(
         "{} keyframes, {} landmarks, {} frames tracked; keyframe ATE {:.2} mm rmse, {:.2} mm max, \
          extent {:.2} m, {:.4} % of extent",
@@ -302,6 +294,21 @@ fn mapping_from_rendered_fisheye_frames() {
 }
 
 /// Observations of `points` from each pose: 0.5 mrad noise, 2 % gross outliers, rays to 95°.
+/// Keyframe positions against the truth after the Sim(3) that aligns them.
+fn keyframe_ate(recon: &Reconstruction, truth: &[Pose]) -> TrajectoryError {
+    let est: Vec<Vector3<f64>> = recon
+        .keyframes
+        .iter()
+        .map(|k| k.cam_from_world.inverse().translation.vector)
+        .collect();
+    let tru: Vec<Vector3<f64>> = recon
+        .keyframes
+        .iter()
+        .map(|k| truth[k.frame as usize].translation.vector)
+        .collect();
+    align_and_measure(&est, &tru).unwrap().1
+}
+
 fn observe(truth: &[Pose], points: &[Vector3<f64>], rng: &mut ChaCha8Rng) -> Vec<MappingFrame> {
     let mut frames = Vec::new();
     for (i, world_from_cam) in truth.iter().enumerate() {
@@ -351,17 +358,7 @@ fn slow_sweep_at_30_hz_keeps_few_keyframes() {
         .collect();
     let frames = observe(&truth, &points, &mut rng);
     let recon = reconstruct(&frames, &MapperOptions::default()).unwrap();
-    let est: Vec<Vector3<f64>> = recon
-        .keyframes
-        .iter()
-        .map(|k| k.cam_from_world.inverse().translation.vector)
-        .collect();
-    let tru: Vec<Vector3<f64>> = recon
-        .keyframes
-        .iter()
-        .map(|k| truth[k.frame as usize].translation.vector)
-        .collect();
-    let (_, err) = align_and_measure(&est, &tru).unwrap();
+    let err = keyframe_ate(&recon, &truth);
     eprintln!(
         "slow sweep: {} keyframes (first at frame {}, second at {}), {} landmarks, {} of {n} \
          frames posed; keyframe ATE {:.2} mm rmse, extent {:.3} m, {:.4} % of extent",
