@@ -49,7 +49,8 @@ pub struct AvDelayOptions {
     /// Display refresh rate (Hz).
     pub refresh_hz: f64,
     /// Distance from the rig's speaker to each capture's camera (m), by capture name; the
-    /// propagation delay is removed.
+    /// propagation delay is removed. A capture not named here takes its distance from the
+    /// `rig.toml` beside its camera folder ([`rig_speaker_distances`]), else 0.
     pub speaker_distance_m: Vec<(String, f64)>,
     /// Unit calibrations, matched to captures by unit id (readout times; A/V delays written).
     pub calibrations: Vec<(PathBuf, UnitCalibration)>,
@@ -82,6 +83,10 @@ pub struct CaptureResult {
     pub av_delay_s: f64,
     /// Its standard error (s).
     pub av_delay_std_s: f64,
+    /// Speaker-to-camera distance whose travel time was removed (m).
+    pub speaker_distance_m: f64,
+    /// Where that distance came from: `option`, `rig.toml` or `none` (0 m assumed).
+    pub speaker_distance_source: String,
     /// Video frame times and fit residuals (s), for the report.
     #[serde(skip)]
     pub video_residuals: Vec<(f64, f64)>,
@@ -548,11 +553,17 @@ pub fn analyse_capture(dir: &Path, options: &AvDelayOptions) -> Result<CaptureRe
             ),
         ));
     }
-    let distance = options
-        .speaker_distance_m
-        .iter()
-        .find(|(n, _)| *n == name)
-        .map_or(0.0, |(_, d)| *d);
+    let (distance, distance_source) =
+        match options.speaker_distance_m.iter().find(|(n, _)| *n == name) {
+            Some((_, d)) => (*d, "option"),
+            None => match rig_speaker_distances(dir)?
+                .into_iter()
+                .find(|(n, _)| *n == name)
+            {
+                Some((_, d)) => (d, "rig.toml"),
+                None => (0.0, "none"),
+            },
+        };
     let propagation = distance / kiwi_core::rig::SPEED_OF_SOUND_M_S;
     let ax: Vec<f64> = labelled.iter().map(|(t, _)| t - propagation).collect();
     let ay: Vec<f64> = labelled.iter().map(|(_, c)| *c).collect();
@@ -587,11 +598,61 @@ pub fn analyse_capture(dir: &Path, options: &AvDelayOptions) -> Result<CaptureRe
         chirps: audio_fit.inliers,
         av_delay_s,
         av_delay_std_s,
+        speaker_distance_m: distance,
+        speaker_distance_source: distance_source.to_string(),
         video_fit,
         audio_fit,
         video_residuals,
         audio_residuals,
     })
+}
+
+/// A rig speaker further than this from the camera is a unit mistake (cm or mm for m).
+pub const MAX_SPEAKER_DISTANCE_M: f64 = 20.0;
+
+/// Check a speaker distance in metres read from `path` (`what` names the entry).
+fn check_speaker_distance(d: f64, path: &Path, what: &str) -> Result<f64> {
+    if d.is_finite() && (0.0..MAX_SPEAKER_DISTANCE_M).contains(&d) {
+        Ok(d)
+    } else {
+        Err(input_error(
+            path,
+            format!(
+                "{what} = {d}: expected metres in [0, {MAX_SPEAKER_DISTANCE_M}) (a distance in cm \
+                 or mm?)"
+            ),
+        ))
+    }
+}
+
+/// The rig's measured speaker distances from the `rig.toml` beside a rig recording's camera
+/// folders (`[speaker_distance_m]`, `camera = metres`), so the analysis removes the sound's
+/// travel time; none when the file is absent.
+pub fn rig_speaker_distances(camera_dir: &Path) -> Result<Vec<(String, f64)>> {
+    #[derive(serde::Deserialize)]
+    #[serde(deny_unknown_fields)]
+    struct RigGeometry {
+        #[serde(default)]
+        speaker_distance_m: std::collections::BTreeMap<String, f64>,
+    }
+    let Some(path) = camera_dir.parent().map(|p| p.join("rig.toml")) else {
+        return Ok(Vec::new());
+    };
+    if !path.exists() {
+        return Ok(Vec::new());
+    }
+    let text = std::fs::read_to_string(&path)
+        .map_err(|e| input_error(&path, format!("cannot read the rig geometry: {e}")))?;
+    let rig: RigGeometry = toml::from_str(&text).map_err(|e| {
+        input_error(
+            &path,
+            format!("expected `[speaker_distance_m]` with `camera = metres` entries: {e}"),
+        )
+    })?;
+    for (camera, d) in &rig.speaker_distance_m {
+        check_speaker_distance(*d, &path, &format!("speaker_distance_m.{camera}"))?;
+    }
+    Ok(rig.speaker_distance_m.into_iter().collect())
 }
 
 /// Analyse captures, aggregate per mode, and difference the video fits of captures whose

@@ -51,7 +51,8 @@ enum Command {
         #[arg(long, default_value_t = 60.0)]
         refresh: f64,
         /// Distance from the rig's speaker to a capture's camera: NAME=METRES (removes the sound's
-        /// travel time, 2.9 ms per metre).
+        /// travel time, 2.9 ms per metre). Without it a capture takes its distance from the
+        /// `rig.toml` beside its camera folder (`[speaker_distance_m]`, `NAME = metres`), if any.
         #[arg(long = "speaker-distance", value_name = "NAME=METRES")]
         speaker_distance: Vec<String>,
         /// Report folder.
@@ -200,12 +201,17 @@ fn main() -> Result<()> {
                 let (name, metres) = d.split_once('=').ok_or_else(|| {
                     anyhow::anyhow!("--speaker-distance {d}: expected NAME=METRES")
                 })?;
-                options.speaker_distance_m.push((
-                    name.to_string(),
-                    metres
-                        .parse()
-                        .with_context(|| format!("--speaker-distance {d}: expected metres"))?,
-                ));
+                let metres: f64 = metres
+                    .parse()
+                    .with_context(|| format!("--speaker-distance {d}: expected metres"))?;
+                let limit = kiwi_calib::av_delay::MAX_SPEAKER_DISTANCE_M;
+                if !(metres.is_finite() && (0.0..limit).contains(&metres)) {
+                    anyhow::bail!(
+                        "--speaker-distance {d}: expected metres in [0, {limit}) (a distance in cm \
+                         or mm?)"
+                    );
+                }
+                options.speaker_distance_m.push((name.to_string(), metres));
             }
             let report = kiwi_calib::av_delay::analyse(&captures, &options)?;
             let written = kiwi_calib::av_delay::write_outputs(&report, &options, &out)?;

@@ -5,7 +5,7 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
-use kiwi_calib::av_delay::{AvDelayOptions, analyse, write_outputs};
+use kiwi_calib::av_delay::{AvDelayOptions, analyse, rig_speaker_distances, write_outputs};
 use kiwi_fixtures::rig::write_rig;
 use kiwi_fixtures::unit::{LensModel, SimUnit};
 
@@ -43,14 +43,30 @@ fn rig_gives_av_delays_and_offsets_within_a_millisecond() {
             .iter()
             .map(|c| rig.join(mode).join(&c.camera))
             .collect();
-        // Speaker distances are per capture folder name, which repeat across modes.
+        // Speaker distances are per capture folder name, which repeat across modes. The fast
+        // mode takes them from the rig's measured geometry (rig.toml beside the camera
+        // folders), the other from the options, as `--speaker-distance` passes them.
         let mut opts = options.clone();
-        opts.speaker_distance_m = cams
+        let distances: Vec<(String, f64)> = cams
             .iter()
             .map(|c| (c.camera.clone(), c.microphone.propagation_delay_s * 343.0))
             .collect();
+        let from_file = mode == "119.88fps";
+        if from_file {
+            let mut toml = String::from("[speaker_distance_m]\n");
+            for (camera, d) in &distances {
+                toml.push_str(&format!("{camera} = {d}\n"));
+            }
+            std::fs::write(rig.join(mode).join("rig.toml"), toml).unwrap();
+            opts.speaker_distance_m = Vec::new();
+        } else {
+            opts.speaker_distance_m = distances.clone();
+        }
         let report = analyse(&captures, &opts).unwrap();
-        for (c, t) in report.captures.iter().zip(&cams) {
+        for ((c, t), (_, d)) in report.captures.iter().zip(&cams).zip(&distances) {
+            assert_eq!(c.speaker_distance_m, *d, "{}", c.name);
+            let source = if from_file { "rig.toml" } else { "option" };
+            assert_eq!(c.speaker_distance_source, source, "{}", c.name);
             let err = c.av_delay_s - t.microphone.av_delay_s;
             assert!(
                 err.abs() < 1e-3,
@@ -148,4 +164,30 @@ fn a_rig_recording_without_chirps_is_refused() {
         .unwrap_err()
         .to_string();
     assert!(err.contains("same recording"), "{err}");
+}
+
+#[test]
+fn rig_geometry_in_centimetres_is_refused_naming_the_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let camera = dir.path().join("30fps").join("cam0");
+    std::fs::create_dir_all(&camera).unwrap();
+    assert!(
+        rig_speaker_distances(&camera).unwrap().is_empty(),
+        "no rig.toml: no distances"
+    );
+    let file = dir.path().join("30fps").join("rig.toml");
+    std::fs::write(&file, "[speaker_distance_m]\ncam0 = 0.8\ncam1 = 1.25\n").unwrap();
+    assert_eq!(
+        rig_speaker_distances(&camera).unwrap(),
+        vec![("cam0".to_string(), 0.8), ("cam1".to_string(), 1.25)]
+    );
+    std::fs::write(&file, "[speaker_distance_m]\ncam0 = 80\n").unwrap();
+    let err = rig_speaker_distances(&camera).unwrap_err().to_string();
+    assert!(
+        err.contains("rig.toml") && err.contains("cam0") && err.contains("cm or mm"),
+        "{err}"
+    );
+    std::fs::write(&file, "[speaker_distances]\ncam0 = 0.8\n").unwrap();
+    let err = rig_speaker_distances(&camera).unwrap_err().to_string();
+    assert!(err.contains("speaker_distance_m"), "{err}");
 }

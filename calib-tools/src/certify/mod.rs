@@ -49,46 +49,6 @@ const MOTION_MEDIAN_HALF: usize = 30;
 /// onset resolves to ~20 µs, so 5 ms only admits chirps and rejects random room sounds.
 const CHIRP_PERIOD_TOLERANCE_S: f64 = 0.005;
 
-/// The rig's measured speaker distances (`rig.toml` beside a rig recording's camera folders),
-/// so the A/V analysis removes the sound's travel time; none when the file is absent.
-fn speaker_distances(camera_dir: &Path) -> Result<Vec<(String, f64)>> {
-    #[derive(Deserialize)]
-    #[serde(deny_unknown_fields)]
-    struct RigGeometry {
-        #[serde(default)]
-        speaker_distance_m: std::collections::BTreeMap<String, f64>,
-    }
-    let Some(path) = camera_dir.parent().map(|p| p.join("rig.toml")) else {
-        return Ok(Vec::new());
-    };
-    if !path.exists() {
-        return Ok(Vec::new());
-    }
-    let text = std::fs::read_to_string(&path).map_err(|e| CalibError::Input {
-        path: path.clone(),
-        message: format!("cannot read the rig geometry: {e}"),
-    })?;
-    let rig: RigGeometry = toml::from_str(&text).map_err(|e| CalibError::Input {
-        path: path.clone(),
-        message: format!("expected `[speaker_distance_m]` with `camera = metres` entries: {e}"),
-    })?;
-    for (camera, d) in &rig.speaker_distance_m {
-        if !(d.is_finite() && (0.0..MAX_SPEAKER_DISTANCE_M).contains(d)) {
-            return Err(CalibError::Input {
-                path: path.clone(),
-                message: format!(
-                    "speaker_distance_m.{camera} = {d}: expected metres in \
-                     [0, {MAX_SPEAKER_DISTANCE_M}) (a distance in cm or mm?)"
-                ),
-            });
-        }
-    }
-    Ok(rig.speaker_distance_m.into_iter().collect())
-}
-
-/// A rig speaker further than this from the camera is a unit mistake (cm or mm for m).
-const MAX_SPEAKER_DISTANCE_M: f64 = 20.0;
-
 /// What the capture folder says the unit is (`unit.toml`).
 #[derive(Debug, Clone, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -1042,7 +1002,9 @@ fn run_steps(
                 continue;
             }
             let mut options = options.clone();
-            match speaker_distances(dir) {
+            // The rig's geometry (rig.toml) is read here too, so a bad file fails its own named
+            // check rather than the whole analysis.
+            match crate::av_delay::rig_speaker_distances(dir) {
                 Ok(d) => options.speaker_distance_m = d,
                 Err(e) => {
                     ledger.failure(
