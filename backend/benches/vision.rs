@@ -111,7 +111,8 @@ fn end_to_end() {
     use kiwi_fixtures::scenario::Scenario;
     use kiwi_fixtures::session::{SessionOptions, write_session};
 
-    // Mapping episode length, and the tabletop and walk episodes' length (s).
+    // Mapping (survey: the table, the walking path and back; 15 s or more) episode length, and
+    // the tabletop and walk episodes' length (s).
     let seconds = env_f64("KIWI_BENCH_VISION_SECONDS", 1.0);
     let query_seconds = env_f64("KIWI_BENCH_VISION_QUERY_SECONDS", seconds);
     // Sessions are rendered once into KIWI_BENCH_VISION_DIR (if set) and reused from there.
@@ -147,7 +148,7 @@ fn end_to_end() {
         "end to end at 960x960 (seed 7; vision on one thread, images decoded on another; \
          frames/s per core = frames / CPU seconds of the process):"
     );
-    let mapping = write("mapping", Scenario::Mapping, seconds);
+    let mapping = write("mapping", Scenario::Survey, seconds);
     let queries = [
         (
             "tabletop",

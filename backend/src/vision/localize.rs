@@ -767,11 +767,25 @@ impl Localizer {
             let first = match self.estimate(&corr, &self.ransac(frame, salt, min_inliers)) {
                 Ok(e) => e,
                 Err(why) => {
+                    if tracing::enabled!(tracing::Level::DEBUG) {
+                        let most = self
+                            .estimate(&corr, &self.ransac(frame, salt, 4))
+                            .map_or(0, |e| e.inliers.len());
+                        tracing::debug!(
+                            frame,
+                            keyframe = k,
+                            correspondences = corr.len(),
+                            most_inliers = most,
+                            %why,
+                            "relocalization candidate failed"
+                        );
+                    }
                     last_reason = format!("keyframe {k}: {why}");
                     continue;
                 }
             };
             // Densify with guided matching over the candidate's landmarks.
+            let first_inliers = first.inliers.len();
             let guided = self.guided_matches(&first.cam_from_map, &local, feats, &grid);
             let e = match self.estimate(&guided, &self.ransac(frame, salt + 1, min_inliers)) {
                 Ok(e) if e.inliers.len() >= first.inliers.len() => e,
@@ -785,6 +799,17 @@ impl Localizer {
                 Ok(w) if w.inliers.len() > e.inliers.len() => w,
                 _ => e,
             };
+            tracing::debug!(
+                frame,
+                keyframe = k,
+                matches = corr.len(),
+                hypothesis_inliers = first_inliers,
+                guided = guided.len(),
+                near_landmarks = near.len(),
+                wide = wide.len(),
+                inliers = e.inliers.len(),
+                "relocalization candidate densified"
+            );
             match self.accept(&e, min_inliers) {
                 Ok(()) => {
                     if best
