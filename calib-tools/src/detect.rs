@@ -634,13 +634,7 @@ fn inside_border(pts: &[Point2<f64>], w: f64, h: f64) -> bool {
 /// Aprilgrid detector for one target.
 pub struct Detector {
     target: AprilGridTarget,
-    /// The `aprilgrid` crate's detector, for [`Detector::detect`] only.
-    crate_detector: aprilgrid::detector::TagDetector,
 }
-
-/// Corner order the `aprilgrid` crate returns, as Kalibr corner indices; measured against the
-/// simulator's exact corners.
-const APRILGRID_CRATE_TO_KALIBR: [usize; 4] = [0, 1, 2, 3];
 
 /// What one image gave.
 #[derive(Debug, Clone)]
@@ -656,54 +650,11 @@ pub struct Detection {
 impl Detector {
     /// A detector for an aprilgrid.
     pub fn new(target: AprilGridTarget) -> Self {
-        Self {
-            target,
-            crate_detector: aprilgrid::detector::TagDetector::new(
-                &aprilgrid::TagFamily::T36H11,
-                Some(aprilgrid::detector::DetectorParams {
-                    tag_spacing_ratio: target.spacing as f32,
-                    ..aprilgrid::detector::DetectorParams::default_params()
-                }),
-            ),
-        }
+        Self { target }
     }
 
-    /// Detect the target's corners in a grey image with the `aprilgrid` crate (saddle-based;
-    /// finds more tags than aruco in motion-blurred frames) and the same refinement. NOT
-    /// deterministic: the crate's board search iterates std `HashMap`s, so which tags are
-    /// found can vary from run to run. Used by the camera–IMU tracker; calibration images go
-    /// through [`Detector::detect_first_pass`].
+    /// Detect the target's corners in a grey image (first pass: the whole image at once).
     pub fn detect(&self, gray: &GrayImage) -> Result<Detection> {
-        let tags = self
-            .crate_detector
-            .detect(&DynamicImage::ImageLuma8(gray.clone()));
-        let (w, h) = (f64::from(gray.width()), f64::from(gray.height()));
-        let mut ids: Vec<u32> = tags
-            .keys()
-            .copied()
-            .filter(|&id| (id as usize) < self.target.tag_count())
-            .collect();
-        ids.sort_unstable();
-        let mut raw: Vec<(u32, [Point2<f64>; 4])> = Vec::new();
-        let mut dropped = 0;
-        for id in ids {
-            let Some(quad) = tags.get(&id) else { continue };
-            let mut pts = [Point2::origin(); 4];
-            for (j, (x, y)) in quad.iter().enumerate() {
-                pts[APRILGRID_CRATE_TO_KALIBR[j]] = Point2::new(f64::from(*x), f64::from(*y));
-            }
-            if inside_border(&pts, w, h) {
-                raw.push((id, pts));
-            } else {
-                dropped += 1;
-            }
-        }
-        self.refine_and_number(gray, &raw, dropped)
-    }
-
-    /// Detect the target's corners in a grey image, deterministically, with OpenCV's aruco
-    /// (first pass of [`detect_folder`]: the whole image at once).
-    pub fn detect_first_pass(&self, gray: &GrayImage) -> Result<Detection> {
         let (w, h) = (f64::from(gray.width()), f64::from(gray.height()));
         let mut raw = Vec::new();
         let mut dropped = 0;
@@ -861,7 +812,7 @@ impl Detector {
             if covered[i] {
                 continue;
             }
-            let centre: Vector3<f64> = missing[i].iter().map(nalgebra::Matrix::normalize).sum();
+            let centre: Vector3<f64> = missing[i].iter().map(|c| c.normalize()).sum();
             let view = RectifiedView::along(&centre, RectifiedView::wide_focal());
             for (j, tag) in missing.iter().enumerate() {
                 covered[j] = covered[j]
@@ -1221,7 +1172,7 @@ pub fn detect_folder(
         .par_iter()
         .map(|path| {
             let gray = load_gray(path)?;
-            let found = detector.detect_first_pass(&gray)?;
+            let found = detector.detect(&gray)?;
             bar.inc(1);
             let name = path
                 .strip_prefix(dir)

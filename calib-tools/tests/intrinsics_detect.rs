@@ -97,7 +97,7 @@ fn tumvi_real_frame_finds_at_least_30_of_36_tags() {
     assert_eq!((gray.width(), gray.height()), (1024, 1024));
     // TUM-VI's calibration target: 6 × 6 tags, 88 mm, spacing 0.3.
     let target = sim_target();
-    let found = Detector::new(target).detect_first_pass(&gray).unwrap();
+    let found = Detector::new(target).detect(&gray).unwrap();
     println!(
         "TUM-VI frame: {} tags, {} corners, {} tags dropped by the checks",
         found.tags.len(),
