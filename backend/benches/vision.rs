@@ -19,6 +19,10 @@
 
 use std::time::Instant;
 
+#[path = "../tests/common/mod.rs"]
+mod common;
+use common::{at, truth};
+
 use kiwi_backend::vision::features::{
     FOV_MASK_MARGIN_RAD, GrayImage, KltOptions, MatchOptions, OrbExtractor, OrbOptions, fov_mask,
     match_descriptors, track_klt,
@@ -47,26 +51,6 @@ fn median_ms(mut f: impl FnMut(), runs: usize) -> f64 {
         .collect();
     t.sort_by(f64::total_cmp);
     t[t.len() / 2]
-}
-
-/// `(t, camera centre)` rows of a truth pose file.
-fn truth(episode: &std::path::Path, camera: &str, lens: &str) -> Vec<(f64, Vector3<f64>)> {
-    let text =
-        std::fs::read_to_string(episode.join(format!("truth/{camera}/{lens}_poses.csv"))).unwrap();
-    text.lines()
-        .skip(1)
-        .map(|l| {
-            let v: Vec<f64> = l.split(',').map(|x| x.parse().unwrap()).collect();
-            (v[0], Vector3::new(v[2], v[3], v[4]))
-        })
-        .collect()
-}
-
-fn at(rows: &[(f64, Vector3<f64>)], t: f64) -> Vector3<f64> {
-    rows.iter()
-        .min_by(|a, b| (a.0 - t).abs().total_cmp(&(b.0 - t).abs()))
-        .map(|r| r.1)
-        .unwrap()
 }
 
 /// CPU seconds (user + system) from a `/proc/.../stat` file (Linux; `None` elsewhere).

@@ -10,8 +10,11 @@
 //! here as 1.5 cm median and 10 cm worst. The full-size figures are in docs/vision.md (bench).
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
-use std::path::{Path, PathBuf};
+mod common;
+
 use std::process::Command;
+
+use common::{at, session, truth};
 
 use kiwi_backend::vision::align::{Sim3, umeyama};
 use kiwi_backend::vision::episode::{
@@ -20,45 +23,13 @@ use kiwi_backend::vision::episode::{
 use kiwi_backend::vision::localize::{FrameLocalization, LocalizationStatus, LocalizerOptions};
 use kiwi_backend::vision::map::VisualMap;
 use kiwi_fixtures::scenario::Scenario;
-use kiwi_fixtures::session::{SessionOptions, write_session};
 use nalgebra::Vector3;
 
 const SEED: u64 = 5;
 
-fn session(root: &Path, name: &str, scenario: Scenario) -> PathBuf {
-    let out = root.join(name);
-    let mut o = SessionOptions::new(&out);
-    o.seed = SEED;
-    o.scenario = scenario;
-    o.duration_s = 3.0;
-    o.resolution = 320;
-    o.rate_hz = 30.0;
-    o.head = false;
-    write_session(&o).unwrap();
-    out.join("episodes").join("ep000")
-}
+/// Duration of the mapping and tabletop episodes (s).
+const EPISODE_S: f64 = 3.0;
 
-/// `(t, camera centre)` rows of a truth pose file.
-fn truth(episode: &Path, camera: &str, lens: &str) -> Vec<(f64, Vector3<f64>)> {
-    let text =
-        std::fs::read_to_string(episode.join(format!("truth/{camera}/{lens}_poses.csv"))).unwrap();
-    text.lines()
-        .skip(1)
-        .map(|l| {
-            let v: Vec<f64> = l.split(',').map(|x| x.parse().unwrap()).collect();
-            (v[0], Vector3::new(v[2], v[3], v[4]))
-        })
-        .collect()
-}
-
-fn at(rows: &[(f64, Vector3<f64>)], t: f64) -> Vector3<f64> {
-    rows.iter()
-        .min_by(|a, b| (a.0 - t).abs().total_cmp(&(b.0 - t).abs()))
-        .map(|r| r.1)
-        .unwrap()
-}
-
-/// Sim(3) from the map frame to the world, from the keyframe centres.
 fn map_to_world(map: &VisualMap, mapping_truth: &[(f64, Vector3<f64>)]) -> Sim3 {
     let est: Vec<Vector3<f64>> = map
         .keyframes
@@ -96,8 +67,8 @@ fn errors(results: &[FrameLocalization], sim: &Sim3, rows: &[(f64, Vector3<f64>)
 #[test]
 fn localization_against_a_frozen_map_on_the_simulator() {
     let dir = tempfile::tempdir().unwrap();
-    let mapping = session(dir.path(), "mapping", Scenario::Mapping);
-    let tabletop = session(dir.path(), "tabletop", Scenario::Tabletop);
+    let mapping = session(dir.path(), "mapping", SEED, Scenario::Mapping, EPISODE_S);
+    let tabletop = session(dir.path(), "tabletop", SEED, Scenario::Tabletop, EPISODE_S);
 
     // Map from the left wrist's front lens.
     let stream = LensStream::open(&mapping, "left", "front", None, None).unwrap();

@@ -11,14 +11,15 @@
 //! Small images (320 px, 30 Hz) keep the test short.
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
-use std::path::{Path, PathBuf};
+mod common;
+
+use common::{at, session, truth};
 
 use kiwi_backend::vision::align::{Sim3, trajectory_error, umeyama};
 use kiwi_backend::vision::episode::{LensStream, build_map, localize_stream};
 use kiwi_backend::vision::localize::{FrameLocalization, LocalizerOptions};
 use kiwi_backend::vision::map::VisualMap;
 use kiwi_fixtures::scenario::Scenario;
-use kiwi_fixtures::session::{SessionOptions, write_session};
 use nalgebra::Vector3;
 
 const SEED: u64 = 5;
@@ -32,40 +33,6 @@ const WINDOW: std::ops::Range<usize> = 90..240;
 /// (m).
 const MIN_DISTANCE_FROM_START_M: f64 = 1.0;
 
-fn session(root: &Path, name: &str, scenario: Scenario, duration_s: f64) -> PathBuf {
-    let out = root.join(name);
-    let mut o = SessionOptions::new(&out);
-    o.seed = SEED;
-    o.scenario = scenario;
-    o.duration_s = duration_s;
-    o.resolution = 320;
-    o.rate_hz = 30.0;
-    o.head = false;
-    write_session(&o).unwrap();
-    out.join("episodes").join("ep000")
-}
-
-/// `(t, camera centre)` rows of a truth pose file.
-fn truth(episode: &Path, camera: &str, lens: &str) -> Vec<(f64, Vector3<f64>)> {
-    let text =
-        std::fs::read_to_string(episode.join(format!("truth/{camera}/{lens}_poses.csv"))).unwrap();
-    text.lines()
-        .skip(1)
-        .map(|l| {
-            let v: Vec<f64> = l.split(',').map(|x| x.parse().unwrap()).collect();
-            (v[0], Vector3::new(v[2], v[3], v[4]))
-        })
-        .collect()
-}
-
-fn at(rows: &[(f64, Vector3<f64>)], t: f64) -> Vector3<f64> {
-    rows.iter()
-        .min_by(|a, b| (a.0 - t).abs().total_cmp(&(b.0 - t).abs()))
-        .map(|r| r.1)
-        .unwrap()
-}
-
-/// Keyframe centres of the map and the truth at their times.
 fn keyframe_centres(
     map: &VisualMap,
     mapping_truth: &[(f64, Vector3<f64>)],
@@ -101,8 +68,8 @@ fn errors(results: &[FrameLocalization], sim: &Sim3, rows: &[(f64, Vector3<f64>)
 #[test]
 fn walk_far_from_the_start_localizes_in_the_room_sweep_map() {
     let dir = tempfile::tempdir().unwrap();
-    let mapping = session(dir.path(), "mapping", Scenario::Survey, MAPPING_S);
-    let walk = session(dir.path(), "walk", Scenario::Walk, WALK_S);
+    let mapping = session(dir.path(), "mapping", SEED, Scenario::Survey, MAPPING_S);
+    let walk = session(dir.path(), "walk", SEED, Scenario::Walk, WALK_S);
 
     let stream = LensStream::open(&mapping, "left", "rear", None, None).unwrap();
     let (map, summary) = build_map(&stream, &mut |_, _| {}).unwrap();

@@ -1,0 +1,43 @@
+//! Helpers shared by the vision tests and bench: simulator sessions and truth pose files.
+#![allow(dead_code, clippy::unwrap_used)]
+
+use std::path::{Path, PathBuf};
+
+use kiwi_fixtures::scenario::Scenario;
+use kiwi_fixtures::session::{SessionOptions, write_session};
+use nalgebra::Vector3;
+
+/// A one-episode session at 320 px and 30 Hz without the head camera; returns its episode folder.
+pub fn session(root: &Path, name: &str, seed: u64, scenario: Scenario, duration_s: f64) -> PathBuf {
+    let out = root.join(name);
+    let mut o = SessionOptions::new(&out);
+    o.seed = seed;
+    o.scenario = scenario;
+    o.duration_s = duration_s;
+    o.resolution = 320;
+    o.rate_hz = 30.0;
+    o.head = false;
+    write_session(&o).unwrap();
+    out.join("episodes").join("ep000")
+}
+
+/// `(t, camera centre)` rows of a truth pose file.
+pub fn truth(episode: &Path, camera: &str, lens: &str) -> Vec<(f64, Vector3<f64>)> {
+    let text =
+        std::fs::read_to_string(episode.join(format!("truth/{camera}/{lens}_poses.csv"))).unwrap();
+    text.lines()
+        .skip(1)
+        .map(|l| {
+            let v: Vec<f64> = l.split(',').map(|x| x.parse().unwrap()).collect();
+            (v[0], Vector3::new(v[2], v[3], v[4]))
+        })
+        .collect()
+}
+
+/// The truth row nearest in time to `t`.
+pub fn at(rows: &[(f64, Vector3<f64>)], t: f64) -> Vector3<f64> {
+    rows.iter()
+        .min_by(|a, b| (a.0 - t).abs().total_cmp(&(b.0 - t).abs()))
+        .map(|r| r.1)
+        .unwrap()
+}
