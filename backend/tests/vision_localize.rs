@@ -14,13 +14,13 @@ mod common;
 
 use std::process::Command;
 
-use common::{at, session, truth};
+use common::{at, errors, session, truth};
 
 use kiwi_backend::vision::align::{Sim3, umeyama};
 use kiwi_backend::vision::episode::{
     LensStream, build_map, localize_stream, summarize, write_poses_csv,
 };
-use kiwi_backend::vision::localize::{FrameLocalization, LocalizationStatus, LocalizerOptions};
+use kiwi_backend::vision::localize::{LocalizationStatus, LocalizerOptions};
 use kiwi_backend::vision::map::VisualMap;
 use kiwi_fixtures::scenario::Scenario;
 use nalgebra::Vector3;
@@ -49,19 +49,6 @@ fn map_to_world(map: &VisualMap, mapping_truth: &[(f64, Vector3<f64>)]) -> Sim3 
         .map(|k| at(mapping_truth, k.t))
         .collect();
     umeyama(&est, &tru, true).unwrap()
-}
-
-/// Position errors (m) of the localized frames.
-fn errors(results: &[FrameLocalization], sim: &Sim3, rows: &[(f64, Vector3<f64>)]) -> Vec<f64> {
-    let mut e: Vec<f64> = results
-        .iter()
-        .filter_map(|r| {
-            r.map_from_cam
-                .map(|p| (sim.transform_point(&p.translation.vector) - at(rows, r.t)).norm())
-        })
-        .collect();
-    e.sort_by(f64::total_cmp);
-    e
 }
 
 #[test]

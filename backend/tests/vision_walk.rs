@@ -13,11 +13,11 @@
 
 mod common;
 
-use common::{at, session, truth};
+use common::{at, errors, session, truth};
 
-use kiwi_backend::vision::align::{Sim3, trajectory_error, umeyama};
+use kiwi_backend::vision::align::{trajectory_error, umeyama};
 use kiwi_backend::vision::episode::{LensStream, build_map, localize_stream};
-use kiwi_backend::vision::localize::{FrameLocalization, LocalizerOptions};
+use kiwi_backend::vision::localize::LocalizerOptions;
 use kiwi_backend::vision::map::VisualMap;
 use kiwi_fixtures::scenario::Scenario;
 use nalgebra::Vector3;
@@ -50,19 +50,6 @@ fn keyframe_centres(
             (c, at(mapping_truth, k.t))
         })
         .unzip()
-}
-
-/// Position errors (m) of the localized frames, sorted.
-fn errors(results: &[FrameLocalization], sim: &Sim3, rows: &[(f64, Vector3<f64>)]) -> Vec<f64> {
-    let mut e: Vec<f64> = results
-        .iter()
-        .filter_map(|r| {
-            r.map_from_cam
-                .map(|p| (sim.transform_point(&p.translation.vector) - at(rows, r.t)).norm())
-        })
-        .collect();
-    e.sort_by(f64::total_cmp);
-    e
 }
 
 #[test]

@@ -3,6 +3,8 @@
 
 use std::path::{Path, PathBuf};
 
+use kiwi_backend::vision::align::Sim3;
+use kiwi_backend::vision::localize::FrameLocalization;
 use kiwi_fixtures::scenario::Scenario;
 use kiwi_fixtures::session::{SessionOptions, write_session};
 use nalgebra::Vector3;
@@ -40,4 +42,18 @@ pub fn at(rows: &[(f64, Vector3<f64>)], t: f64) -> Vector3<f64> {
         .min_by(|a, b| (a.0 - t).abs().total_cmp(&(b.0 - t).abs()))
         .map(|r| r.1)
         .unwrap()
+}
+
+/// Position errors (m) of the localized frames against the truth rows, after the map's Sim(3),
+/// sorted.
+pub fn errors(results: &[FrameLocalization], sim: &Sim3, rows: &[(f64, Vector3<f64>)]) -> Vec<f64> {
+    let mut e: Vec<f64> = results
+        .iter()
+        .filter_map(|r| {
+            r.map_from_cam
+                .map(|p| (sim.transform_point(&p.translation.vector) - at(rows, r.t)).norm())
+        })
+        .collect();
+    e.sort_by(f64::total_cmp);
+    e
 }
