@@ -21,7 +21,7 @@ use std::time::Instant;
 
 #[path = "../tests/common/mod.rs"]
 mod common;
-use common::{at, truth};
+use common::{errors, keyframe_centres, truth};
 
 use kiwi_backend::vision::features::{
     FOV_MASK_MARGIN_RAD, GrayImage, KltOptions, MatchOptions, OrbExtractor, OrbOptions, fov_mask,
@@ -156,19 +156,7 @@ fn end_to_end() {
         let (map, summary) = pool.install(|| build_map(&stream, &mut |_, _| {})).unwrap();
         let cpu = cpu_now().0 - cpu0.0;
         let rows = truth(&mapping, camera, lens);
-        let est: Vec<Vector3<f64>> = map
-            .keyframes
-            .iter()
-            .map(|k| {
-                k.cam_from_map
-                    .to_pose()
-                    .unwrap()
-                    .inverse()
-                    .translation
-                    .vector
-            })
-            .collect();
-        let tru: Vec<Vector3<f64>> = map.keyframes.iter().map(|k| at(&rows, k.t)).collect();
+        let (est, tru) = keyframe_centres(&map, &rows);
         let sim = umeyama(&est, &tru, true).unwrap();
         let ate = trajectory_error(&sim, &est, &tru).unwrap();
         println!(
@@ -212,14 +200,7 @@ fn end_to_end() {
         });
         let cpu1 = cpu_now();
         let rows = truth(episode, camera, lens);
-        let mut e: Vec<f64> = results
-            .iter()
-            .filter_map(|r| {
-                r.map_from_cam
-                    .map(|p| (sim.transform_point(&p.translation.vector) - at(&rows, r.t)).norm())
-            })
-            .collect();
-        e.sort_by(f64::total_cmp);
+        let e = errors(&results, sim, &rows);
         let median_mm = e.get(e.len() / 2).copied().unwrap_or(f64::NAN) * 1e3;
         let over_5cm = e.iter().filter(|&&x| x > 0.05).count();
         let n = s.frames as f64;

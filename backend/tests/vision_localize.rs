@@ -14,7 +14,7 @@ mod common;
 
 use std::process::Command;
 
-use common::{at, errors, session, truth};
+use common::{errors, keyframe_centres, session, truth};
 
 use kiwi_backend::vision::align::{Sim3, umeyama};
 use kiwi_backend::vision::episode::{
@@ -31,23 +31,7 @@ const SEED: u64 = 5;
 const EPISODE_S: f64 = 3.0;
 
 fn map_to_world(map: &VisualMap, mapping_truth: &[(f64, Vector3<f64>)]) -> Sim3 {
-    let est: Vec<Vector3<f64>> = map
-        .keyframes
-        .iter()
-        .map(|k| {
-            k.cam_from_map
-                .to_pose()
-                .unwrap()
-                .inverse()
-                .translation
-                .vector
-        })
-        .collect();
-    let tru: Vec<Vector3<f64>> = map
-        .keyframes
-        .iter()
-        .map(|k| at(mapping_truth, k.t))
-        .collect();
+    let (est, tru) = keyframe_centres(map, mapping_truth);
     umeyama(&est, &tru, true).unwrap()
 }
 

@@ -13,14 +13,12 @@
 
 mod common;
 
-use common::{at, errors, session, truth};
+use common::{at, errors, keyframe_centres, session, truth};
 
 use kiwi_backend::vision::align::{trajectory_error, umeyama};
 use kiwi_backend::vision::episode::{LensStream, build_map, localize_stream};
 use kiwi_backend::vision::localize::LocalizerOptions;
-use kiwi_backend::vision::map::VisualMap;
 use kiwi_fixtures::scenario::Scenario;
-use nalgebra::Vector3;
 
 const SEED: u64 = 5;
 /// Survey (mapping) episode (s): the room sweep at up to ~1 m/s.
@@ -32,25 +30,6 @@ const WINDOW: std::ops::Range<usize> = 90..240;
 /// Every left-wrist frame of the window is at least this far from the mapping's first keyframe
 /// (m).
 const MIN_DISTANCE_FROM_START_M: f64 = 1.0;
-
-fn keyframe_centres(
-    map: &VisualMap,
-    mapping_truth: &[(f64, Vector3<f64>)],
-) -> (Vec<Vector3<f64>>, Vec<Vector3<f64>>) {
-    map.keyframes
-        .iter()
-        .map(|k| {
-            let c = k
-                .cam_from_map
-                .to_pose()
-                .unwrap()
-                .inverse()
-                .translation
-                .vector;
-            (c, at(mapping_truth, k.t))
-        })
-        .unzip()
-}
 
 #[test]
 fn walk_far_from_the_start_localizes_in_the_room_sweep_map() {

@@ -5,6 +5,7 @@ use std::path::{Path, PathBuf};
 
 use kiwi_backend::vision::align::Sim3;
 use kiwi_backend::vision::localize::FrameLocalization;
+use kiwi_backend::vision::map::VisualMap;
 use kiwi_fixtures::scenario::Scenario;
 use kiwi_fixtures::session::{SessionOptions, write_session};
 use nalgebra::Vector3;
@@ -56,4 +57,25 @@ pub fn errors(results: &[FrameLocalization], sim: &Sim3, rows: &[(f64, Vector3<f
         .collect();
     e.sort_by(f64::total_cmp);
     e
+}
+
+/// Each keyframe's camera centre in the map, paired with the true centre at its time:
+/// `(estimated, true)`, for a Sim(3) alignment of the map to the world.
+pub fn keyframe_centres(
+    map: &VisualMap,
+    mapping_truth: &[(f64, Vector3<f64>)],
+) -> (Vec<Vector3<f64>>, Vec<Vector3<f64>>) {
+    map.keyframes
+        .iter()
+        .map(|k| {
+            let c = k
+                .cam_from_map
+                .to_pose()
+                .unwrap()
+                .inverse()
+                .translation
+                .vector;
+            (c, at(mapping_truth, k.t))
+        })
+        .unzip()
 }
