@@ -1,7 +1,7 @@
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
-//! Acceptance of the intrinsics fit on simulator captures (960 × 960, ~190°, 40 views, KB4 and
-//! Double Sphere): exact corners plus 0.3 px Gaussian noise through the corners-file path, with
-//! and without 5 % corrupted detections.
+//! Acceptance of the intrinsics fit on simulator captures (960 × 960, ~190°, 40 views of the
+//! recommended capture design, KB4 and Double Sphere): exact corners plus 0.3 px Gaussian noise
+//! through the corners-file path, with and without 5 % corrupted detections.
 
 mod common_intrinsics;
 
@@ -11,11 +11,21 @@ use std::path::Path;
 use common_intrinsics::*;
 use kiwi_calib::detect::CornerSet;
 use kiwi_calib::intrinsics::{IntrinsicsOptions, calibrate, report::write_outputs};
+use kiwi_calib::target::AprilGridTarget;
 use kiwi_core::camera::{CameraModel, CameraModelKind};
+use kiwi_fixtures::captures::IntrinsicsDesign;
 use kiwi_fixtures::unit::LensModel;
 
 const RESOLUTION: u32 = 960;
 const VIEWS: usize = 40;
+/// The capture design docs/intrinsics.md recommends: a 10 × 10 × 55 mm aprilgrid held at
+/// 0.2–0.4 m, most views towards the edge of the image circle.
+fn design() -> IntrinsicsDesign {
+    IntrinsicsDesign::recommended()
+}
+/// The issue's limit on how far the fitted lens projects from the true one (px RMS over the
+/// field of view).
+const PROJECTION_TOLERANCE_PX: f64 = 0.05;
 /// Corner noise the issue assumes (px per axis).
 const SIGMA: f64 = 0.3;
 
@@ -45,11 +55,11 @@ fn check(
 ) -> (Check, Vec<String>) {
     let truth_cam = truth_camera(cap, "front");
     let truth = truth_corners(cap, "front");
-    let target = sim_target();
+    let target = design_target(&design());
     let mut set = noisy_corner_set(&truth, &target, RESOLUTION, sigma, 5);
     let mut corrupted = Vec::new();
     if corrupt {
-        corrupted = corrupt_set(&mut set, 0.05, 99);
+        corrupted = corrupt_set(&mut set, &target, 0.05, 99);
     }
     let options = IntrinsicsOptions {
         model: kind,
@@ -131,8 +141,12 @@ fn check(
 
 /// Corrupt a fraction of the corners: half moved by 3–25 px, half given the id (and board
 /// position) of a target point the image does not contain. Returns `image/id` of each.
-fn corrupt_set(set: &mut CornerSet, fraction: f64, seed: u64) -> Vec<String> {
-    let target = sim_target();
+fn corrupt_set(
+    set: &mut CornerSet,
+    target: &AprilGridTarget,
+    fraction: f64,
+    seed: u64,
+) -> Vec<String> {
     let mut noise = Noise::new(seed);
     let mut keys = Vec::new();
     for img in &mut set.images {
@@ -166,25 +180,24 @@ fn corrupt_set(set: &mut CornerSet, fraction: f64, seed: u64) -> Vec<String> {
     keys
 }
 
-/// The issue's tolerances on the parameters and the RMS, and the projection error against what
-/// the data can determine. The fit is unbiased (noise-free corners give 0.0000 px, see
-/// [`accept`]) and efficient: over 8 noise seeds the principal point errs by 0.039 px RMS per
-/// axis for DS (the fit's own std: 0.034 px) and 0.045 px for KB4 (std 0.052 px), and a
-/// principal-point error shifts every projection, so with 40 views at 0.3 px the projection
-/// error over the field of view is 0.007–0.10 px (DS) and 0.034–0.18 px (KB4) depending on the
-/// noise draw alone. The projection error is therefore held to 3σ of the principal point's
-/// own uncertainty (not to a seed that happens to pass 0.05 px).
+/// The issue's tolerances: fx, fy within 0.1 %, cx, cy within 0.3 px, the fitted lens
+/// reproduces the true projections within 0.05 px RMS over the whole field of view, and the fit
+/// RMS is within 15 % of the injected noise. The projection error is dominated by the principal
+/// point's statistical uncertainty, which the capture design sets (docs/intrinsics.md, "Capture
+/// design"): with the recommended design the fit's own principal-point std is ~0.017 px per
+/// axis (KB4) and ~0.012 px (DS), so 0.05 px holds with margin; Kalibr's 6 × 6 board at
+/// 0.35–0.9 m gives ~0.05 px per axis and cannot meet it reliably.
 fn assert_inside(c: &Check) {
     assert!(c.fx_rel < 1e-3, "fx off by {:.4} %", 100.0 * c.fx_rel);
     assert!(c.fy_rel < 1e-3, "fy off by {:.4} %", 100.0 * c.fy_rel);
     assert!(c.cx_px < 0.3, "cx off by {:.3} px", c.cx_px);
     assert!(c.cy_px < 0.3, "cy off by {:.3} px", c.cy_px);
-    let pp_sigma = c.pp_std[0].hypot(c.pp_std[1]);
     assert!(
-        c.projection_rms < 3.0 * pp_sigma,
-        "projections differ by {:.4} px RMS, more than 3σ ({:.4} px) of the principal point",
+        c.projection_rms < PROJECTION_TOLERANCE_PX,
+        "projections differ by {:.4} px RMS over the field of view (the issue: < \
+         {PROJECTION_TOLERANCE_PX} px); principal point std {:?} px",
         c.projection_rms,
-        3.0 * pp_sigma
+        c.pp_std
     );
     assert!(
         (c.rms - SIGMA).abs() < 0.15 * SIGMA,
@@ -201,7 +214,7 @@ fn assert_inside(c: &Check) {
 /// by less than 0.05 px from the clean one.
 fn accept(model: LensModel, kind: CameraModelKind, seed: u64) {
     let dir = tempfile::tempdir().unwrap();
-    let cap = capture(dir.path(), model, VIEWS, RESOLUTION, seed);
+    let cap = capture_with(dir.path(), model, VIEWS, RESOLUTION, seed, design());
     let (exact, _) = check(dir.path(), &cap, kind, 0.0, false);
     assert!(
         exact.projection_rms < 1e-3,

@@ -41,8 +41,8 @@ pub const OUTLIER_FLOOR_PX: f64 = 0.5;
 /// A view is rejected if its RMS exceeds this multiple of the median view RMS (a bad view:
 /// motion blur, a wrong pose, a misdetected board).
 pub const VIEW_RMS_FACTOR: f64 = 3.0;
-/// Rounds of rejection and re-fitting.
-const REJECTION_ROUNDS: usize = 6;
+/// Most rounds of rejection and re-fitting (the set of corners taking part settles in 2–4).
+const REJECTION_ROUNDS: usize = 8;
 /// Distinct Double Sphere starts fitted jointly (the model has more than one basin; the best
 /// lens-to-lens match sometimes leads the joint fit into a wrong one, ~1 in 25 captures).
 const DS_JOINT_STARTS: usize = 3;
@@ -227,6 +227,7 @@ fn views_from_corners(set: &CornerSet, rejected: &mut Vec<RejectedCorner>) -> Ve
                 board: Vec::new(),
                 pixel: Vec::new(),
                 active: Vec::new(),
+                usable: Vec::new(),
                 view_active: true,
             };
             for c in &img.corners {
@@ -244,6 +245,7 @@ fn views_from_corners(set: &CornerSet, rejected: &mut Vec<RejectedCorner>) -> Ve
                 v.board.push(c.board_point());
                 v.pixel.push(Vector2::new(c.pixel[0], c.pixel[1]));
                 v.active.push(unique);
+                v.usable.push(unique);
             }
             v
         })
@@ -300,15 +302,16 @@ fn check_coverage(camera: &Camera, views: &[ViewObs]) -> Result<()> {
     }
 }
 
-/// Residual norms of the active corners of active views.
-fn active_residuals(camera: &Camera, poses: &[Pose], views: &[ViewObs]) -> Vec<f64> {
+/// Residual norms of the usable corners of active views (rejected ones included: with a few
+/// per cent of outliers the median stays the inliers').
+fn usable_residuals(camera: &Camera, poses: &[Pose], views: &[ViewObs]) -> Vec<f64> {
     let mut out = Vec::new();
     for (v, pose) in views.iter().zip(poses) {
         if !v.view_active {
             continue;
         }
         for i in 0..v.board.len() {
-            if v.active[i]
+            if v.usable[i]
                 && let Some(r) = solve::residual(camera, pose, &v.board[i], &v.pixel[i])
             {
                 out.push(r.norm());
@@ -326,36 +329,34 @@ fn median(values: &mut [f64]) -> f64 {
     values[values.len() / 2]
 }
 
-/// Reject outlying corners and views; returns how many were rejected in this round.
-fn reject(
+/// Re-decide which corners and views take part, from the current fit; returns how many
+/// decisions changed and the corner threshold used (px).
+///
+/// Every usable corner of a usable view is judged again each round, so a corner that a poor
+/// early fit put outside the threshold comes back once the fit improves (rejections made on a
+/// biased first fit would otherwise stay and bias the result). Views are rejected for good:
+/// their poses stop being refined.
+fn classify(
     camera: &Camera,
     poses: &[Pose],
     views: &mut [ViewObs],
     rejected: &mut Vec<RejectedCorner>,
-) -> usize {
-    let mut norms = active_residuals(camera, poses, views);
+) -> (usize, f64) {
+    let mut norms = usable_residuals(camera, poses, views);
     let sigma = median(&mut norms) / RAYLEIGH_MEDIAN;
     let threshold = (OUTLIER_SIGMAS * sigma).max(OUTLIER_FLOOR_PX);
-    let mut count = 0;
+    let mut changed = 0;
     for (v, pose) in views.iter_mut().zip(poses) {
         if !v.view_active {
             continue;
         }
         for i in 0..v.board.len() {
-            if !v.active[i] {
-                continue;
-            }
-            let r = solve::residual(camera, pose, &v.board[i], &v.pixel[i]).map(|r| r.norm());
-            if r.is_none_or(|r| r > threshold) {
-                v.active[i] = false;
-                count += 1;
-                rejected.push(RejectedCorner {
-                    image: v.name.clone(),
-                    id: v.ids[i],
-                    pixel: [v.pixel[i].x, v.pixel[i].y],
-                    residual_px: r.unwrap_or(f64::NAN),
-                    reason: format!("residual above {threshold:.2} px ({OUTLIER_SIGMAS}σ)"),
-                });
+            let keep = v.usable[i]
+                && solve::residual(camera, pose, &v.board[i], &v.pixel[i])
+                    .is_some_and(|r| r.norm() <= threshold);
+            if keep != v.active[i] {
+                v.active[i] = keep;
+                changed += 1;
             }
         }
     }
@@ -367,14 +368,13 @@ fn reject(
         .collect();
     let mut all: Vec<f64> = view_rms.iter().flatten().copied().collect();
     let med = median(&mut all);
-    for (v, rms) in views.iter_mut().zip(&view_rms) {
+    for ((v, rms), pose) in views.iter_mut().zip(&view_rms).zip(poses) {
         if !v.view_active {
             continue;
         }
         let too_few = v.active_count() < MIN_CORNERS_PER_VIEW;
         let too_bad = rms.is_some_and(|r| r > VIEW_RMS_FACTOR * med && r > threshold / 2.0);
         if too_few || too_bad {
-            v.view_active = false;
             let reason = if too_few {
                 format!("view kept fewer than {MIN_CORNERS_PER_VIEW} corners")
             } else {
@@ -383,22 +383,65 @@ fn reject(
                     rms.unwrap_or(f64::NAN)
                 )
             };
-            for i in 0..v.board.len() {
-                if v.active[i] {
-                    v.active[i] = false;
-                    count += 1;
-                    rejected.push(RejectedCorner {
-                        image: v.name.clone(),
-                        id: v.ids[i],
-                        pixel: [v.pixel[i].x, v.pixel[i].y],
-                        residual_px: f64::NAN,
-                        reason: reason.clone(),
-                    });
-                }
+            reject_view(camera, pose, v, &reason, rejected);
+            changed += 1;
+        }
+    }
+    (changed, threshold)
+}
+
+/// Take a view out of the fit, listing each of its usable corners with the reason.
+fn reject_view(
+    camera: &Camera,
+    pose: &Pose,
+    v: &mut ViewObs,
+    reason: &str,
+    rejected: &mut Vec<RejectedCorner>,
+) {
+    v.view_active = false;
+    for i in 0..v.board.len() {
+        v.active[i] = false;
+        if v.usable[i] {
+            rejected.push(RejectedCorner {
+                image: v.name.clone(),
+                id: v.ids[i],
+                pixel: [v.pixel[i].x, v.pixel[i].y],
+                residual_px: solve::residual(camera, pose, &v.board[i], &v.pixel[i])
+                    .map_or(f64::NAN, |r| r.norm()),
+                reason: reason.to_string(),
+            });
+        }
+    }
+}
+
+/// List the usable corners of the views still in the fit that the last round left out.
+fn list_rejected_corners(
+    camera: &Camera,
+    poses: &[Pose],
+    views: &[ViewObs],
+    threshold: f64,
+    rejected: &mut Vec<RejectedCorner>,
+) {
+    for (v, pose) in views.iter().zip(poses) {
+        if !v.view_active {
+            continue;
+        }
+        for i in 0..v.board.len() {
+            if v.usable[i] && !v.active[i] {
+                let r = solve::residual(camera, pose, &v.board[i], &v.pixel[i]).map(|r| r.norm());
+                rejected.push(RejectedCorner {
+                    image: v.name.clone(),
+                    id: v.ids[i],
+                    pixel: [v.pixel[i].x, v.pixel[i].y],
+                    residual_px: r.unwrap_or(f64::NAN),
+                    reason: match r {
+                        Some(_) => format!("residual above {threshold:.2} px ({OUTLIER_SIGMAS}σ)"),
+                        None => "does not project through the fitted lens".into(),
+                    },
+                });
             }
         }
     }
-    count
 }
 
 fn view_rms(camera: &Camera, pose: &Pose, v: &ViewObs) -> Option<f64> {
@@ -432,7 +475,9 @@ fn too_few_views(n: usize, stage: &str) -> CalibError {
 /// the final solve's iterations.
 type DsFit = (Camera, Vec<Pose>, Vec<ViewObs>, Vec<RejectedCorner>, usize);
 
-/// Robust fit with rejection rounds; returns the final solve's iterations.
+/// Robust fit with rejection rounds, re-fitting until the set of corners taking part stops
+/// changing; the corners left out at the end are added to `rejected`. Returns the final
+/// solve's iterations.
 fn fit_with_rejection(
     camera: &mut Camera,
     poses: &mut [Pose],
@@ -440,19 +485,35 @@ fn fit_with_rejection(
     rejected: &mut Vec<RejectedCorner>,
 ) -> Result<usize> {
     let mut iterations = 0;
+    let mut threshold = f64::INFINITY;
+    let mut settled = false;
     for _ in 0..REJECTION_ROUNDS {
-        let stats = solve::optimize(camera, poses, views, Some(HUBER_PX))
-            .ok_or_else(|| CalibError::Internal("the fit could not evaluate any corner".into()))?;
-        iterations = stats.iterations;
-        let n = active_view_count(views);
-        if n < MIN_VIEWS {
-            return Err(too_few_views(n, "after rejecting outliers"));
-        }
-        if reject(camera, poses, views, rejected) == 0 {
+        iterations = solve_once(camera, poses, views)?;
+        let (changed, t) = classify(camera, poses, views, rejected);
+        threshold = t;
+        tracing::debug!(changed, threshold, "intrinsics rejection round");
+        if changed == 0 {
+            settled = true;
             break;
         }
     }
+    if !settled {
+        // The last round changed the set: fit it once more.
+        iterations = solve_once(camera, poses, views)?;
+    }
+    list_rejected_corners(camera, poses, views, threshold, rejected);
     Ok(iterations)
+}
+
+/// One robust solve; checks enough views remain.
+fn solve_once(camera: &mut Camera, poses: &mut [Pose], views: &mut [ViewObs]) -> Result<usize> {
+    let n = active_view_count(views);
+    if n < MIN_VIEWS {
+        return Err(too_few_views(n, "after rejecting outliers"));
+    }
+    let stats = solve::optimize(camera, poses, views, Some(HUBER_PX))
+        .ok_or_else(|| CalibError::Internal("the fit could not evaluate any corner".into()))?;
+    Ok(stats.iterations)
 }
 
 /// Calibrate one lens from a corners set.

@@ -27,6 +27,9 @@ pub(crate) struct ViewObs {
     pub pixel: Vec<Vector2<f64>>,
     /// Whether each corner takes part.
     pub active: Vec<bool>,
+    /// Whether each corner may take part at all (false: its id is repeated in the image);
+    /// outlier rejection re-decides `active` among these every round.
+    pub usable: Vec<bool>,
     /// Whether the view takes part.
     pub view_active: bool,
 }

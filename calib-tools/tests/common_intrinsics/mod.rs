@@ -8,13 +8,36 @@ use kiwi_calib::detect::{Corner, CornerSet, ImageCorners};
 use kiwi_calib::target::AprilGridTarget;
 use kiwi_core::artifact::UnitCalibration;
 use kiwi_core::camera::{Camera, CameraModel};
-use kiwi_fixtures::captures::{UnitCaptureOptions, write_unit_captures};
+use kiwi_fixtures::captures::{IntrinsicsDesign, UnitCaptureOptions, write_unit_captures};
 use kiwi_fixtures::unit::LensModel;
 
-/// A unit capture with only the intrinsics views.
+/// A unit capture with only the intrinsics views (Kalibr's board, the default design).
 pub fn capture(dir: &Path, model: LensModel, views: usize, resolution: u32, seed: u64) -> PathBuf {
-    let out = dir.join(format!("unit-{model:?}-{views}-{resolution}-{seed}"));
+    capture_with(
+        dir,
+        model,
+        views,
+        resolution,
+        seed,
+        IntrinsicsDesign::kalibr(),
+    )
+}
+
+/// A unit capture with only the intrinsics views, in a given capture design.
+pub fn capture_with(
+    dir: &Path,
+    model: LensModel,
+    views: usize,
+    resolution: u32,
+    seed: u64,
+    design: IntrinsicsDesign,
+) -> PathBuf {
+    let out = dir.join(format!(
+        "unit-{model:?}-{views}-{resolution}-{seed}-{}x{}",
+        design.grid.cols, design.grid.rows
+    ));
     let mut o = UnitCaptureOptions::new(&out, "X5-IT");
+    o.intrinsics_design = design;
     o.seed = seed;
     o.resolution = resolution;
     o.lens_model = model;
@@ -140,4 +163,10 @@ pub fn projection_rms(truth: &Camera, fitted: &Camera, max_theta: f64) -> f64 {
 /// The default Kalibr aprilgrid the simulator draws.
 pub fn sim_target() -> AprilGridTarget {
     AprilGridTarget::new(6, 6, 0.088, 0.3).unwrap()
+}
+
+/// The aprilgrid a capture design holds up.
+pub fn design_target(design: &IntrinsicsDesign) -> AprilGridTarget {
+    let g = design.grid;
+    AprilGridTarget::new(g.cols, g.rows, g.tag_size_m, g.spacing).unwrap()
 }
