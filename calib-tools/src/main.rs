@@ -136,6 +136,10 @@ enum Command {
     /// Write print-ready targets: a Kalibr aprilgrid board (+ target yaml) or an ArUco tag.
     #[command(subcommand)]
     Target(kiwi_calib::lens_cli::TargetCommand),
+    /// Convert corners from other tools (OpenCV FileStorage image and board points) into a
+    /// corners file for `intrinsics --corners`.
+    #[command(subcommand)]
+    Corners(kiwi_calib::import::CornersCommand),
     /// Detect aprilgrid corners in a folder of images and write a corners file.
     Detect(kiwi_calib::lens_cli::DetectArgs),
     /// Calibrate a lens's intrinsics over its whole field of view (images or a corners file).
@@ -415,6 +419,20 @@ fn main() -> Result<()> {
         Command::Target(cmd) => {
             for p in kiwi_calib::lens_cli::run_target(&cmd)? {
                 println!("wrote {}", p.display());
+            }
+        }
+        Command::Corners(cmd) => {
+            let set = kiwi_calib::import::run_corners(&cmd)?;
+            let kiwi_calib::import::CornersCommand::Import(args) = &cmd;
+            if args.json {
+                println!("{}", serde_json::to_string_pretty(&set.summary_json())?);
+            } else {
+                println!(
+                    "{} views, {} corners; wrote {}",
+                    set.images.len(),
+                    set.total_corners(),
+                    args.out.display()
+                );
             }
         }
         Command::Detect(args) => {
