@@ -397,3 +397,138 @@ fn matrix_values(mat: &Mat, dim: usize) -> std::result::Result<Vec<f64>, NodeErr
     let flat = m64.reshape(1, 0)?.try_clone()?;
     Ok(flat.data_typed::<f64>()?.to_vec())
 }
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
+mod tests {
+    use super::*;
+
+    /// A 3 × 2 board (0.1 m squares) and two views' pixels.
+    const BOARD: [[f64; 3]; 6] = [
+        [0.0, 0.0, 0.0],
+        [0.1, 0.0, 0.0],
+        [0.2, 0.0, 0.0],
+        [0.0, 0.1, 0.0],
+        [0.1, 0.1, 0.0],
+        [0.2, 0.1, 0.0],
+    ];
+
+    fn pixel(view: usize, i: usize) -> [f64; 2] {
+        [
+            100.5 + 10.0 * i as f64 + view as f64,
+            200.25 + 3.0 * i as f64,
+        ]
+    }
+
+    fn list(values: impl Iterator<Item = f64>) -> String {
+        values
+            .map(|v| format!("{v:?}"))
+            .collect::<Vec<_>>()
+            .join(", ")
+    }
+
+    fn write(dir: &Path, name: &str, text: &str) -> PathBuf {
+        let p = dir.join(name);
+        std::fs::write(&p, text).unwrap();
+        p
+    }
+
+    fn check(set: &CornerSet, names: &[&str]) {
+        assert_eq!(set.images.len(), names.len());
+        for (v, im) in set.images.iter().enumerate() {
+            assert_eq!(im.name, names[v]);
+            assert_eq!((im.width, im.height), (640, 480));
+            assert_eq!(im.corners.len(), 6);
+            for (i, c) in im.corners.iter().enumerate() {
+                assert_eq!(c.id as usize, i, "ids follow the board, sorted by y then x");
+                assert_eq!(c.pixel, pixel(v, i));
+                assert!((0..3).all(|k| (c.board[k] - BOARD[i][k]).abs() < 1e-6));
+            }
+        }
+    }
+
+    #[test]
+    fn list_of_views_and_one_board_matrix_for_all() {
+        let dir = tempfile::tempdir().unwrap();
+        let views: String = (0..2)
+            .map(|v| format!("   - [ {} ]\n", list((0..6).flat_map(|i| pixel(v, i)))))
+            .collect();
+        let img = write(
+            dir.path(),
+            "img.yaml",
+            &format!("%YAML:1.0\n---\nimage_width: 640\npoints:\n{views}"),
+        );
+        let obj = write(
+            dir.path(),
+            "obj.yaml",
+            &format!(
+                "%YAML:1.0\n---\nboard: !!opencv-matrix\n   rows: 6\n   cols: 1\n   dt: \"3f\"\n   \
+                 data: [ {} ]\n",
+                list(BOARD.iter().flatten().copied())
+            ),
+        );
+        let set = import_opencv(&img, &obj, 640, 480).unwrap();
+        check(&set, &["points_0", "points_1"]);
+    }
+
+    #[test]
+    fn named_views_as_matrices_and_point_lists_pair_by_name() {
+        let dir = tempfile::tempdir().unwrap();
+        let m = |v: usize| {
+            format!(
+                "!!opencv-matrix\n   rows: 6\n   cols: 2\n   dt: d\n   data: [ {} ]",
+                list((0..6).flat_map(|i| pixel(v, i)))
+            )
+        };
+        let img = write(
+            dir.path(),
+            "img.yaml",
+            &format!("%YAML:1.0\n---\nfirst: {}\nsecond: {}\n", m(0), m(1)),
+        );
+        let points = BOARD
+            .iter()
+            .map(|p| format!("[{}]", list(p.iter().copied())))
+            .collect::<Vec<_>>()
+            .join(", ");
+        // Object views in the other order: pairing is by name.
+        let obj = write(
+            dir.path(),
+            "obj.yaml",
+            &format!("%YAML:1.0\n---\nsecond: [{points}]\nfirst: [{points}]\n"),
+        );
+        let set = import_opencv(&img, &obj, 640, 480).unwrap();
+        check(&set, &["first", "second"]);
+    }
+
+    #[test]
+    fn malformed_input_says_what_and_where() {
+        let dir = tempfile::tempdir().unwrap();
+        let board = format!(
+            "%YAML:1.0\n---\nb: [ {} ]\n",
+            list(BOARD.iter().flatten().copied())
+        );
+        let obj = write(dir.path(), "obj.yaml", &board);
+        let err = |img_text: &str, obj: &Path| {
+            let img = write(dir.path(), "img.yaml", img_text);
+            import_opencv(&img, obj, 640, 480).unwrap_err().to_string()
+        };
+        let e = err("%YAML:1.0\n---\nv: [ 1.0, 2.0, 3.0 ]\n", &obj);
+        assert!(e.contains("node <v>") && e.contains("multiple of 2"), "{e}");
+        let e = err("%YAML:1.0\n---\nv: [ 1.0, 2.0, 3.0, 4.0 ]\n", &obj);
+        assert!(e.contains("2 image points but 6 board points"), "{e}");
+        let e = err("%YAML:1.0\n---\nwidth: 640\n", &obj);
+        assert!(e.contains("no views of image points"), "{e}");
+        let e = err("this is not < a FileStorage file", &obj);
+        assert!(e.contains("FileStorage"), "{e}");
+        let tilted = write(
+            dir.path(),
+            "tilted.yaml",
+            "%YAML:1.0\n---\nb: [ 0.0, 0.0, 0.0, 0.1, 0.0, 0.05 ]\n",
+        );
+        let e = err("%YAML:1.0\n---\nv: [ 1.0, 2.0, 3.0, 4.0 ]\n", &tilted);
+        assert!(e.contains("z = 0"), "{e}");
+        assert_eq!(parse_size("1280x800"), Some((1280, 800)));
+        assert_eq!(parse_size("1280x"), None);
+        assert_eq!(parse_size("0x800"), None);
+    }
+}
