@@ -229,3 +229,32 @@ fn real_fisheye_left_lens_converges_without_a_focal_hint() {
 fn real_fisheye_right_lens_converges_without_a_focal_hint() {
     check_lens("right");
 }
+
+#[test]
+fn corners_import_command_writes_the_same_corners() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("corners.json");
+    let status = std::process::Command::new(env!("CARGO_BIN_EXE_kiwi-calib"))
+        .args(["corners", "import", "--opencv"])
+        .arg(data("right.xml"))
+        .arg("--object")
+        .arg(data("object.xml"))
+        .args(["--size", "1280x800", "--out"])
+        .arg(&out)
+        .status()
+        .unwrap();
+    assert!(status.success());
+    assert_eq!(CornerSet::load(&out).unwrap(), corners("right"));
+    let bad = std::process::Command::new(env!("CARGO_BIN_EXE_kiwi-calib"))
+        .args(["corners", "import", "--opencv"])
+        .arg(data("right.xml"))
+        .arg("--object")
+        .arg(data("object.xml"))
+        .args(["--size", "1280", "--out"])
+        .arg(dir.path().join("bad.json"))
+        .output()
+        .unwrap();
+    assert!(!bad.status.success());
+    let stderr = String::from_utf8_lossy(&bad.stderr);
+    assert!(stderr.contains("WIDTHxHEIGHT"), "{stderr}");
+}
