@@ -5,7 +5,7 @@ use std::path::PathBuf;
 use anyhow::{Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 
-use kiwi_backend::vision::episode::{LensStream, build_map, localize_stream, write_poses_csv};
+use kiwi_backend::vision::episode::{LensStream, build_map_with, localize_stream, write_poses_csv};
 use kiwi_backend::vision::localize::LocalizerOptions;
 use kiwi_backend::vision::map::VisualMap;
 
@@ -52,6 +52,10 @@ pub struct MapArgs {
     /// Output map file (.kmap).
     #[arg(long)]
     pub out: PathBuf,
+    /// Close loops (place recognition, verification, Sim(3) pose graph, landmark fusion,
+    /// global BA) before the map is written; experimental, off by default (docs/vision.md).
+    #[arg(long)]
+    pub loop_closure: bool,
     /// Print a JSON summary.
     #[arg(long)]
     pub json: bool,
@@ -115,8 +119,10 @@ pub fn run_map(a: &MapArgs) -> Result<()> {
         a.mask.as_deref(),
     )?;
     let pb = bar(stream.frames.len(), a.json, "tracking");
-    let (map, summary) = build_map(&stream, &mut |done, _| pb.set_position(done as u64))
-        .with_context(|| format!("mapping {}", a.episode.display()))?;
+    let (map, summary) = build_map_with(&stream, a.loop_closure, &mut |done, _| {
+        pb.set_position(done as u64);
+    })
+    .with_context(|| format!("mapping {}", a.episode.display()))?;
     pb.finish_and_clear();
     map.save(&a.out)?;
     if a.json {

@@ -168,8 +168,9 @@ fn evaluate(problem: &BaProblem, bases: &[Matrix2x3<f64>], huber: f64) -> (f64, 
     (cost, if n > 0 { (sq / n as f64).sqrt() } else { 0.0 })
 }
 
-/// Solve `S x = b` for a symmetric positive definite `S` (sequential faer Cholesky).
-fn solve_spd(s: &mut Mat<f64>, b: &mut Mat<f64>) -> bool {
+/// Solve `S x = b` in place for a symmetric positive definite `S` (sequential faer Cholesky;
+/// `b` becomes `x`); false when the factorization fails or the solution is not finite.
+pub(crate) fn solve_spd_system(s: &mut Mat<f64>, b: &mut Mat<f64>) -> bool {
     use faer::linalg::cholesky::llt::factor;
     let n = s.nrows();
     let mut mem = MemBuffer::new(factor::cholesky_in_place_scratch::<f64>(
@@ -333,7 +334,7 @@ pub fn bundle_adjust(problem: &mut BaProblem, options: &BaOptions) -> Result<BaR
                 }
             }
         }
-        let solved = dim == 0 || solve_spd(&mut s, &mut rhs);
+        let solved = dim == 0 || solve_spd_system(&mut s, &mut rhs);
         if !solved {
             lambda *= 10.0;
             if lambda > MAX_LAMBDA {

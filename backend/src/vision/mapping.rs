@@ -7,8 +7,8 @@
 //! with their unit bearings. Everything is deterministic: tracks are kept in ordered maps,
 //! RANSAC seeds derive from the frame index.
 //!
-//! The image front-end (ORB + KLT on the episode's frames) and place recognition / loop
-//! closure are separate steps still to be connected (docs/vision.md).
+//! The image front-end (ORB + KLT on the episode's frames) is `vision::frontend`; loop closure
+//! runs on the finished reconstruction ([`crate::vision::loop_closure`], [`global_adjustment`]).
 
 use std::collections::BTreeMap;
 
@@ -538,7 +538,11 @@ fn triangulate_new(recon: &mut Reconstruction, index: usize, options: &MapperOpt
 /// Bundle adjustment over the last `local_window` keyframes (all keyframes if `global`), with
 /// older keyframes that see the same landmarks held fixed, keyframe 0 always fixed; then drop
 /// observations whose error exceeds `max_error_rad`.
-fn local_ba(recon: &mut Reconstruction, options: &MapperOptions, global: bool) -> Result<()> {
+pub(crate) fn local_ba(
+    recon: &mut Reconstruction,
+    options: &MapperOptions,
+    global: bool,
+) -> Result<()> {
     let n = recon.keyframes.len();
     let start = if global {
         0
@@ -607,4 +611,11 @@ fn local_ba(recon: &mut Reconstruction, options: &MapperOptions, global: bool) -
             });
     }
     Ok(())
+}
+
+/// Global bundle adjustment of a reconstruction (keyframe 0 fixed), dropping observations whose
+/// error then exceeds `options.max_error_rad`: run after loop closure has corrected and merged
+/// the map.
+pub fn global_adjustment(recon: &mut Reconstruction, options: &MapperOptions) -> Result<()> {
+    local_ba(recon, options, true)
 }

@@ -12,6 +12,8 @@
 //! - [`frontend`]: frame-to-frame KLT tracking topped up with ORB keypoints → bearing tracks.
 //! - [`mapping`]: incremental mapping on bearing tracks (two-view init, P3P per frame,
 //!   keyframes, triangulation, local and global robust BA).
+//! - [`loop_closure`]: loop detection by place recognition, geometric verification, Sim(3)
+//!   pose-graph correction and landmark fusion over a finished reconstruction.
 //! - [`map`]: the versioned `.kmap` file and its export from a reconstruction.
 //! - [`place`]: place recognition over keyframes (bag of binary words learned from the map).
 //! - [`localize`]: every frame against a frozen map (KLT tracking with guided top-up,
@@ -28,6 +30,7 @@ pub mod features;
 pub mod frontend;
 pub mod geometry;
 pub mod localize;
+pub mod loop_closure;
 pub mod map;
 pub mod mapping;
 pub mod place;
