@@ -305,23 +305,23 @@ fn check_coverage(camera: &Camera, views: &[ViewObs]) -> Result<()> {
     }
 }
 
-/// Residual norms of the usable corners of active views (rejected ones included: with a few
-/// per cent of outliers the median stays the inliers').
-fn usable_residuals(camera: &Camera, poses: &[Pose], views: &[ViewObs]) -> Vec<f64> {
-    let mut out = Vec::new();
-    for (v, pose) in views.iter().zip(poses) {
-        if !v.view_active {
-            continue;
-        }
-        for i in 0..v.board.len() {
-            if v.usable[i]
-                && let Some(r) = solve::residual(camera, pose, &v.board[i], &v.pixel[i])
-            {
-                out.push(r.norm());
-            }
-        }
-    }
-    out
+/// Residual norm of every corner of every view (px): `None` for views out of the fit, corners
+/// that are not usable, and corners that do not project.
+fn corner_norms(camera: &Camera, poses: &[Pose], views: &[ViewObs]) -> Vec<Vec<Option<f64>>> {
+    views
+        .iter()
+        .zip(poses)
+        .map(|(v, pose)| {
+            (0..v.board.len())
+                .map(|i| {
+                    (v.view_active && v.usable[i])
+                        .then(|| solve::residual(camera, pose, &v.board[i], &v.pixel[i]))
+                        .flatten()
+                        .map(|r| r.norm())
+                })
+                .collect()
+        })
+        .collect()
 }
 
 fn median(values: &mut [f64]) -> f64 {
@@ -345,20 +345,22 @@ fn classify(
     views: &mut [ViewObs],
     rejected: &mut Vec<RejectedCorner>,
 ) -> (usize, f64) {
-    let mut norms = usable_residuals(camera, poses, views);
-    let sigma = median(&mut norms) / RAYLEIGH_MEDIAN;
+    // One residual per corner serves the noise level, the corner decisions and the view RMS.
+    // The noise level comes from every usable corner, rejected ones included: with a few per
+    // cent of outliers the median stays the inliers'.
+    let norms = corner_norms(camera, poses, views);
+    let mut all: Vec<f64> = norms.iter().flatten().flatten().copied().collect();
+    let sigma = median(&mut all) / RAYLEIGH_MEDIAN;
     let threshold = (OUTLIER_SIGMAS * sigma).max(OUTLIER_FLOOR_PX);
     let mut changed = 0;
-    for (v, pose) in views.iter_mut().zip(poses) {
+    for (v, view_norms) in views.iter_mut().zip(&norms) {
         if !v.view_active {
             continue;
         }
-        for i in 0..v.board.len() {
-            let keep = v.usable[i]
-                && solve::residual(camera, pose, &v.board[i], &v.pixel[i])
-                    .is_some_and(|r| r.norm() <= threshold);
-            if keep != v.active[i] {
-                v.active[i] = keep;
+        for (active, norm) in v.active.iter_mut().zip(view_norms) {
+            let keep = norm.is_some_and(|r| r <= threshold);
+            if keep != *active {
+                *active = keep;
                 changed += 1;
             }
         }
@@ -366,8 +368,16 @@ fn classify(
     // Views: too few corners left, or an RMS far above the others'.
     let view_rms: Vec<Option<f64>> = views
         .iter()
-        .zip(poses)
-        .map(|(v, pose)| view_rms(camera, pose, v))
+        .zip(&norms)
+        .map(|(v, view_norms)| {
+            let kept: Vec<f64> = view_norms
+                .iter()
+                .zip(&v.active)
+                .filter_map(|(n, a)| n.filter(|_| *a))
+                .collect();
+            (v.view_active && !kept.is_empty())
+                .then(|| (kept.iter().map(|r| r * r).sum::<f64>() / (2 * kept.len()) as f64).sqrt())
+        })
         .collect();
     let mut all: Vec<f64> = view_rms.iter().flatten().copied().collect();
     let med = median(&mut all);
@@ -445,22 +455,6 @@ fn list_rejected_corners(
             }
         }
     }
-}
-
-fn view_rms(camera: &Camera, pose: &Pose, v: &ViewObs) -> Option<f64> {
-    if !v.view_active {
-        return None;
-    }
-    let (mut sum, mut n) = (0.0, 0usize);
-    for i in 0..v.board.len() {
-        if v.active[i]
-            && let Some(r) = solve::residual(camera, pose, &v.board[i], &v.pixel[i])
-        {
-            sum += r.norm_squared();
-            n += 1;
-        }
-    }
-    (n > 0).then(|| (sum / (2 * n) as f64).sqrt())
 }
 
 fn active_view_count(views: &[ViewObs]) -> usize {
