@@ -14,12 +14,10 @@ mod common;
 
 use std::process::Command;
 
-use common::{errors, keyframe_centres, session, truth};
+use common::{errors, keyframe_centres, session, tracked_map, truth};
 
 use kiwi_backend::vision::align::{Sim3, umeyama};
-use kiwi_backend::vision::episode::{
-    LensStream, build_map, localize_stream, summarize, write_poses_csv,
-};
+use kiwi_backend::vision::episode::{LensStream, localize_stream, summarize, write_poses_csv};
 use kiwi_backend::vision::localize::{LocalizationStatus, LocalizerOptions};
 use kiwi_backend::vision::map::VisualMap;
 use kiwi_fixtures::scenario::Scenario;
@@ -42,10 +40,7 @@ fn localization_against_a_frozen_map_on_the_simulator() {
     let tabletop = session(dir.path(), "tabletop", SEED, Scenario::Tabletop, EPISODE_S);
 
     // Map from the left wrist's front lens.
-    let stream = LensStream::open(&mapping, "left", "front", None, None).unwrap();
-    let (map, summary) = build_map(&stream, &mut |_, _| {}).unwrap();
-    eprintln!("map: {summary:?}");
-    assert_eq!(summary.lost_at, None);
+    let map = tracked_map(&mapping, "left", "front");
     let map_path = dir.path().join("left_front.kmap");
     map.save(&map_path).unwrap();
     let map = VisualMap::load(&map_path).unwrap();

@@ -13,10 +13,10 @@
 
 mod common;
 
-use common::{at, errors, keyframe_centres, session, truth};
+use common::{at, errors, keyframe_centres, session, tracked_map, truth};
 
 use kiwi_backend::vision::align::{trajectory_error, umeyama};
-use kiwi_backend::vision::episode::{LensStream, build_map, localize_stream};
+use kiwi_backend::vision::episode::{LensStream, localize_stream};
 use kiwi_backend::vision::localize::LocalizerOptions;
 use kiwi_fixtures::scenario::Scenario;
 
@@ -37,10 +37,7 @@ fn walk_far_from_the_start_localizes_in_the_room_sweep_map() {
     let mapping = session(dir.path(), "mapping", SEED, Scenario::Survey, MAPPING_S);
     let walk = session(dir.path(), "walk", SEED, Scenario::Walk, WALK_S);
 
-    let stream = LensStream::open(&mapping, "left", "rear", None, None).unwrap();
-    let (map, summary) = build_map(&stream, &mut |_, _| {}).unwrap();
-    eprintln!("map: {summary:?}");
-    assert_eq!(summary.lost_at, None, "the sweep is tracked to the end");
+    let map = tracked_map(&mapping, "left", "rear");
     let mapping_truth = truth(&mapping, "left", "rear");
     let (est, tru) = keyframe_centres(&map, &mapping_truth);
     let sim = umeyama(&est, &tru, true).unwrap();

@@ -4,6 +4,7 @@
 use std::path::{Path, PathBuf};
 
 use kiwi_backend::vision::align::Sim3;
+use kiwi_backend::vision::episode::{LensStream, build_map};
 use kiwi_backend::vision::localize::FrameLocalization;
 use kiwi_backend::vision::map::VisualMap;
 use kiwi_fixtures::scenario::Scenario;
@@ -78,4 +79,17 @@ pub fn keyframe_centres(
             (c, at(mapping_truth, k.t))
         })
         .unzip()
+}
+
+/// A map of one lens stream of `episode`, built from every frame; the stream must be tracked to
+/// its end.
+pub fn tracked_map(episode: &Path, camera: &str, lens: &str) -> VisualMap {
+    let stream = LensStream::open(episode, camera, lens, None, None).unwrap();
+    let (map, summary) = build_map(&stream, &mut |_, _| {}).unwrap();
+    eprintln!("map of {camera} {lens}: {summary:?}");
+    assert_eq!(
+        summary.lost_at, None,
+        "{camera} {lens} is tracked to the end"
+    );
+    map
 }
