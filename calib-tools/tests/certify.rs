@@ -1,9 +1,11 @@
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 //! Acceptance of `kiwi-calib certify` on simulated units.
 //!
-//! One simulated X5 unit (480 px lenses, 24 aprilgrid views per lens, a 4 s camera–IMU
-//! excitation, a 4-h static IMU log at 20 Hz, two 20 s QR-clock rig sessions in the 30 fps
-//! mode) certifies end to end with every value inside the individual issues' tolerances;
+//! One simulated X5 unit (480 px lenses, 24 aprilgrid views per lens of the recommended capture
+//! design — a 10 × 10 × 55 mm board at 0.2–0.4 m —, a 4 s camera–IMU excitation, a 4-h static
+//! IMU log at 20 Hz, two 20 s QR-clock rig sessions in the 30 fps mode) certifies end to end
+//! with every value inside the individual issues' tolerances (`common_certify`; the
+//! intrinsics issue's 0.05 px projection figure is held even at this reduced size);
 //! the same unit captured again (fresh noise and board poses) certifies into a second folder and
 //! `--previous` reports no significant change; after a simulated firmware change (focal lengths
 //! +0.4 %) `--previous` flags exactly its intrinsics. Three reduced captures fail with the named
@@ -14,10 +16,14 @@ use std::path::{Path, PathBuf};
 use kiwi_calib::certify::policy::Policy;
 use kiwi_calib::certify::{CertifyOptions, CertifyReport, certify, report};
 use kiwi_core::artifact::UnitCalibration;
-use kiwi_core::camera::CameraModel;
 use kiwi_fixtures::captures::{UnitCaptureOptions, write_unit_captures};
 
+mod common_certify;
+
 const DATE: &str = "2026-11-22";
+/// Projection error limit: the intrinsics issue's figure (stated for 960 px, 40 views), met by
+/// the recommended design at 480 px and 24 views too (measured 0.008 / 0.010 px).
+const PROJECTION_LIMIT_PX: f64 = common_certify::PROJECTION_PX;
 
 fn sim(dir: &Path, name: &str, edit: impl FnOnce(&mut UnitCaptureOptions)) -> PathBuf {
     let out = dir.join(name);
@@ -81,27 +87,6 @@ fn own_failures(r: &CertifyReport) -> Vec<String> {
         .collect()
 }
 
-/// RMS (px) of how far `fitted` projects the directions `truth` sees, within 90° off-axis.
-fn projection_rms(truth: &kiwi_core::camera::Camera, fitted: &kiwi_core::camera::Camera) -> f64 {
-    let (w, h) = truth.resolution();
-    let (mut sum, mut n) = (0.0, 0usize);
-    for y in (0..h).step_by(4) {
-        for x in (0..w).step_by(4) {
-            let p = nalgebra::Point2::new(f64::from(x), f64::from(y));
-            let Some(b) = truth.unproject(&p) else {
-                continue;
-            };
-            if b.z.clamp(-1.0, 1.0).acos() > 90f64.to_radians() {
-                continue;
-            }
-            let q = fitted.project(&b).unwrap();
-            sum += (q - p).norm_squared();
-            n += 1;
-        }
-    }
-    (sum / n as f64).sqrt()
-}
-
 #[test]
 fn simulated_unit_certifies_recertifies_and_flags_a_firmware_change() {
     let tmp = tempfile::tempdir().unwrap();
@@ -116,79 +101,16 @@ fn simulated_unit_certifies_recertifies_and_flags_a_firmware_change() {
     let truth = UnitCalibration::load(&cap.join("truth/calibration.json")).unwrap();
     let cal = UnitCalibration::load(&a.folder.join("calibration.json")).unwrap();
     assert!(cal.certification.as_ref().unwrap().passed);
-    for t in &truth.lenses {
-        let l = cal.lens(&t.name).unwrap();
-        let (tc, lc) = (t.camera().unwrap(), l.camera().unwrap());
-        let (tp, lp) = (t.intrinsics.params(), l.intrinsics.params());
-        let fx_err = (lp[0] / tp[0] - 1.0).abs();
-        let c_err = (lp[2] - tp[2]).hypot(lp[3] - tp[3]);
-        let proj = projection_rms(&tc, &lc);
-        let xt = t.cam_from_imu().unwrap();
-        let xl = l.cam_from_imu().unwrap();
-        let rot = (xt.rotation.inverse() * xl.rotation).angle().to_degrees();
-        let trans = (xt.translation.vector - xl.translation.vector).norm();
-        let shift = (t.time_shift_s.unwrap() - l.time_shift_s.unwrap()).abs();
-        println!(
-            "{}: fx {:.4} %, principal point {c_err:.3} px, projection {proj:.4} px, rotation \
-             {rot:.4} deg, translation {:.3} mm, time shift {:.4} ms",
-            t.name,
-            fx_err * 100.0,
-            trans * 1e3,
-            shift * 1e3
-        );
-        // Intrinsics issue: focal length within 0.1 %. Its projection tolerance (0.05 px at
-        // 960 px, 40 views) is not reached by this reduced 480 px, 24-view capture (measured
-        // 0.055 px on the front lens = 0.11 px at 960 px); held here to 0.1 px.
-        assert!(fx_err < 1e-3, "{}: fx off by {fx_err}", t.name);
-        assert!(proj < 0.1, "{}: projection error {proj} px", t.name);
-        // Camera–IMU issue: 0.1°, 2 mm, 0.2 ms.
-        assert!(rot < 0.1 && trans < 0.002 && shift < 2e-4, "{}", t.name);
-    }
-    let (ti, ci) = (truth.imu.as_ref().unwrap(), cal.imu.as_ref().unwrap());
-    for (name, t, c, tol) in [
-        (
-            "gyro N",
-            ti.gyroscope_noise_density,
-            ci.gyroscope_noise_density,
-            0.03,
-        ),
-        (
-            "accel N",
-            ti.accelerometer_noise_density,
-            ci.accelerometer_noise_density,
-            0.03,
-        ),
-        (
-            "gyro K",
-            ti.gyroscope_random_walk,
-            ci.gyroscope_random_walk,
-            0.15,
-        ),
-        (
-            "accel K",
-            ti.accelerometer_random_walk,
-            ci.accelerometer_random_walk,
-            0.15,
-        ),
-    ] {
-        let err = (c / t - 1.0).abs();
-        println!("imu {name}: {:.2} %", err * 100.0);
-        // IMU issue: N within 3 %, K within 15 %.
-        assert!(err < tol, "imu {name}: {c} vs truth {t}");
-    }
     assert_eq!(cal.av_delays.len(), 1);
-    for d in &cal.av_delays {
-        let t = truth.av_delays.iter().find(|t| t.mode == d.mode).unwrap();
-        let err = (d.delay_s - t.delay_s).abs();
-        println!(
-            "A/V delay {}: error {:.3} ms over {} repeats",
-            d.mode,
-            err * 1e3,
-            d.repeats
-        );
-        // A/V-delay issue: within 1 ms.
-        assert!(err < 1e-3 && d.repeats == 2);
-    }
+    assert!(cal.av_delays.iter().all(|d| d.repeats == 2));
+    let checks = common_certify::compare_with_truth(&truth, &cal, PROJECTION_LIMIT_PX);
+    println!("against the truth:\n{}", common_certify::describe(&checks));
+    assert_eq!(checks.len(), 2 * 8 + 4 + 1);
+    let failed: Vec<_> = checks.iter().filter(|c| !c.passed()).collect();
+    assert!(
+        failed.is_empty(),
+        "outside the issues' tolerances: {failed:?}"
+    );
     for f in [
         "calibration.json",
         "certification.json",
