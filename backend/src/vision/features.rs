@@ -552,6 +552,59 @@ pub fn match_descriptors(
     out
 }
 
+/// Brute-force Hamming matching of `query` to groups of train descriptors: `train[j]` belongs to
+/// group `groups[j]` (e.g. the keyframe views of one landmark), and a query matches the group of
+/// its nearest train descriptor. The ratio test compares the best distance with the best
+/// distance to any *other* group (several views of one landmark do not make it ambiguous); the
+/// mutual check asks that the matched group's nearest query (over all its views) is this one.
+/// `DescriptorMatch::train` is the group. Output in query order; deterministic.
+pub fn match_descriptor_groups(
+    query: &[Descriptor],
+    train: &[Descriptor],
+    groups: &[u32],
+    options: &MatchOptions,
+) -> Vec<DescriptorMatch> {
+    let n_groups = groups.iter().map(|&g| g as usize + 1).max().unwrap_or(0);
+    // Per group: (best distance, query index) over all of the group's views.
+    let mut reverse: Vec<(u32, usize)> = vec![(u32::MAX, usize::MAX); n_groups];
+    let mut out = Vec::new();
+    for (i, q) in query.iter().enumerate() {
+        let (mut bg, mut bd) = (u32::MAX, u32::MAX);
+        let mut sd = u32::MAX;
+        for (t, &g) in train.iter().zip(groups) {
+            let dist = q.distance(t);
+            let r = &mut reverse[g as usize];
+            if dist < r.0 {
+                *r = (dist, i);
+            }
+            if g == bg {
+                bd = bd.min(dist);
+            } else if dist < bd {
+                sd = bd;
+                bd = dist;
+                bg = g;
+            } else if dist < sd {
+                sd = dist;
+            }
+        }
+        if bg == u32::MAX || bd > options.max_distance {
+            continue;
+        }
+        if sd != u32::MAX && (bd as f32) >= options.ratio * sd as f32 {
+            continue;
+        }
+        out.push(DescriptorMatch {
+            query: i,
+            train: bg as usize,
+            distance: bd,
+        });
+    }
+    if options.mutual {
+        out.retain(|m| reverse[m.train].1 == m.query);
+    }
+    out
+}
+
 /// Settings of pyramidal Lucas–Kanade tracking.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct KltOptions {
@@ -725,4 +778,44 @@ fn klt_forward_backward<I: opencv::core::ToInputArray>(
         }));
     }
     Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A descriptor with the first `ones` bits set.
+    fn bits(ones: u32) -> Descriptor {
+        let mut d = [0u64; 4];
+        for i in 0..ones as usize {
+            d[i / 64] |= 1 << (i % 64);
+        }
+        Descriptor(d)
+    }
+
+    #[test]
+    fn grouped_matching_compares_with_the_nearest_view_and_other_groups_only() {
+        let options = MatchOptions::default();
+        // Landmark 0 has two views far apart (0 and 120 bits); landmark 1 sits at 200 bits.
+        let train = [bits(0), bits(120), bits(200)];
+        let groups = [0, 0, 1];
+        // A query 2 bits from the second view: its nearest other view (same landmark, 118 bits)
+        // must not count as an ambiguity; the other landmark is 78 bits away.
+        let m = match_descriptor_groups(&[bits(122)], &train, &groups, &options);
+        assert_eq!(m.len(), 1);
+        assert_eq!((m[0].query, m[0].train, m[0].distance), (0, 0, 2));
+        // Halfway between two landmarks' views: ambiguous, refused by the ratio test.
+        let m = match_descriptor_groups(&[bits(160)], &train, &groups, &options);
+        assert!(m.is_empty(), "{m:?}");
+        // Two queries near landmark 0: only its nearest (over both views) is kept (mutual).
+        let m = match_descriptor_groups(&[bits(4), bits(121)], &train, &groups, &options);
+        assert_eq!(m.len(), 1);
+        assert_eq!((m[0].query, m[0].train), (1, 0));
+        // Too far from everything.
+        let strict = MatchOptions {
+            max_distance: 10,
+            ..options
+        };
+        assert!(match_descriptor_groups(&[bits(60)], &train, &groups, &strict).is_empty());
+    }
 }

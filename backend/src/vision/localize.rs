@@ -10,7 +10,9 @@
 //!    few pixels by Hamming distance (ratio-checked), then the pose is re-estimated.
 //! 2. **Relocalization** (tracking failed or the previous frame was lost): ORB features are
 //!    quantized into the map's bag of words; the best-scoring keyframes are candidates; the
-//!    query is matched (mutual + ratio) to the landmarks of each candidate and its neighbours,
+//!    query is matched (mutual + ratio) to the landmarks of each candidate and its neighbours —
+//!    to each landmark's representative descriptor and to every keyframe view of it in that
+//!    window (a fisheye view from elsewhere resembles one view far better than a medoid),
 //!    P3P RANSAC gives a pose, guided matching over the same landmarks densifies it, and the
 //!    candidate with the most inliers wins.
 //! 3. **Acceptance** (both paths): at least `min_inliers` inliers, an inlier ratio of at least
@@ -33,7 +35,7 @@ use kiwi_core::geometry::Pose;
 use crate::error::{BackendError, Result};
 use crate::vision::features::{
     Descriptor, FrameFeatures, GrayImage, KltOptions, KltPyramid, Mask, MatchOptions, OrbExtractor,
-    OrbOptions, match_descriptors, track_klt_pyramids,
+    OrbOptions, match_descriptor_groups, track_klt_pyramids,
 };
 use crate::vision::geometry::{RansacOptions, absolute_pose_ransac, angular_error};
 use crate::vision::map::VisualMap;
@@ -243,6 +245,11 @@ pub struct Localizer {
     vocabulary: crate::vision::place::Vocabulary,
     positions: Vec<Vector3<f64>>,
     descriptors: Vec<Descriptor>,
+    /// Per keyframe, its linked features' descriptors and landmarks: relocalization matches the
+    /// query against these views as well as the landmarks' representative descriptors (a
+    /// landmark's views differ a lot across a fisheye image — distortion, scale, rotation — and
+    /// one medoid matches a view from elsewhere poorly).
+    keyframe_views: Vec<Vec<(Descriptor, u32)>>,
     keyframe_landmarks: Vec<Vec<u32>>,
     keyframe_centres: Vec<Vector3<f64>>,
     state: Option<TrackState>,
@@ -296,6 +303,17 @@ impl Localizer {
                     .map_or_else(Vector3::zeros, |p| p.inverse().translation.vector)
             })
             .collect();
+        let keyframe_views: Vec<Vec<(Descriptor, u32)>> = map
+            .keyframes
+            .iter()
+            .map(|k| {
+                k.features
+                    .iter()
+                    .filter_map(|f| f.landmark.map(|l| (f.descriptor, l)))
+                    .filter(|(_, l)| (*l as usize) < map.landmarks.len())
+                    .collect()
+            })
+            .collect();
         let threshold_rad = options.threshold_px * pixel_angle(&camera);
         Ok(Self {
             orb: OrbExtractor::new(&options.orb)?,
@@ -311,6 +329,7 @@ impl Localizer {
                 .map(|l| Vector3::from(l.position))
                 .collect(),
             descriptors: map.landmarks.iter().map(|l| l.descriptor).collect(),
+            keyframe_views,
             keyframe_landmarks,
             keyframe_centres,
             state: None,
@@ -545,6 +564,13 @@ impl Localizer {
         baseline: usize,
     ) -> FrameLocalization {
         let inliers = e.inliers.len();
+        tracing::debug!(
+            frame,
+            inliers,
+            candidates = e.candidates,
+            status = status.name(),
+            "pose accepted"
+        );
         let carry_rad = self.options.carry_px / self.options.threshold_px * self.threshold_rad;
         let points: Vec<(u32, Point2<f64>)> = e
             .inliers
@@ -747,17 +773,32 @@ impl Localizer {
                 .flat_map(|j| self.keyframe_landmarks[j].iter().copied())
                 .collect();
             let local: Vec<u32> = set.into_iter().collect();
-            let train: Vec<Descriptor> = local
-                .iter()
-                .map(|&l| self.descriptors[l as usize])
-                .collect();
-            let matches = match_descriptors(&feats.descriptors, &train, &self.options.matching);
+            // Match against every keyframe view of the window's landmarks (plus their
+            // representatives), grouped by landmark.
+            let mut train: Vec<Descriptor> = Vec::new();
+            let mut groups: Vec<u32> = Vec::new();
+            for &l in &local {
+                train.push(self.descriptors[l as usize]);
+                groups.push(l);
+            }
+            for j in lo..=hi {
+                for (d, l) in &self.keyframe_views[j] {
+                    train.push(*d);
+                    groups.push(*l);
+                }
+            }
+            let matches = match_descriptor_groups(
+                &feats.descriptors,
+                &train,
+                &groups,
+                &self.options.matching,
+            );
             let corr: Vec<Correspondence> = matches
                 .iter()
                 .map(|m| {
                     let kp = &feats.keypoints[m.query];
                     Correspondence {
-                        landmark: local[m.train],
+                        landmark: m.train as u32,
                         pixel: kp.pixel,
                         bearing: kp.bearing,
                     }
