@@ -4,8 +4,9 @@
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
 use kiwi_backend::vision::geometry::{
-    RansacOptions, RayObservation, TriangulationLimits, absolute_pose_ransac, angular_error, p3p,
-    relative_pose_ransac, tangent_basis, tangent_residual, triangulate,
+    RansacOptions, RayObservation, TriangulationLimits, absolute_pose_position_std,
+    absolute_pose_ransac, angular_error, p3p, refine_absolute_pose, relative_pose_ransac,
+    tangent_basis, tangent_residual, triangulate,
 };
 use kiwi_core::geometry::{Pose, so3_exp};
 use nalgebra::{Point3, Translation3, Vector3};
@@ -372,4 +373,65 @@ fn tangent_residual_matches_angle_and_finite_differences() {
             assert!((fd - j.column(k)).norm() < 1e-6, "{fd} vs {}", j.column(k));
         }
     }
+}
+
+/// The predicted position uncertainty of an absolute pose matches the scatter of poses refined
+/// from noisy bearings (Monte Carlo, largest eigenvalue of the centres' covariance within 25 %),
+/// grows linearly with the scene's distance, and is refused for fewer than three points.
+#[test]
+fn absolute_pose_position_std_matches_monte_carlo_scatter() {
+    let mut rng = ChaCha8Rng::seed_from_u64(41);
+    let cam_from_world = random_pose(&mut rng, 1.0, 0.5);
+    let world_from_cam = cam_from_world.inverse();
+    let sigma = 2e-3;
+    // A one-sided scene: 30 points within 60° of the axis at 2-4 m (position weakly fixed
+    // along the axis).
+    let mut points = Vec::new();
+    while points.len() < 30 {
+        let d = random_fov_direction(&mut rng);
+        if d.z < 0.5 {
+            continue;
+        }
+        let depth = rng.random_range(2.0..4.0);
+        points.push((world_from_cam * Point3::from(d * depth)).coords);
+    }
+    let bearings: Vec<Vector3<f64>> = points
+        .iter()
+        .map(|p| (cam_from_world * Point3::from(*p)).coords.normalize())
+        .collect();
+    let predicted = absolute_pose_position_std(&cam_from_world, &bearings, &points, sigma).unwrap();
+    let centre = world_from_cam.translation.vector;
+    let trials = 400;
+    let mut cov = nalgebra::Matrix3::<f64>::zeros();
+    for _ in 0..trials {
+        let b: Vec<Vector3<f64>> = bearings.iter().map(|b| noisy(&mut rng, b, sigma)).collect();
+        // Huber threshold far above the noise: plain least squares.
+        let pose = refine_absolute_pose(&cam_from_world, &b, &points, 1.0);
+        let d = pose.inverse().translation.vector - centre;
+        cov += d * d.transpose();
+    }
+    cov /= f64::from(trials);
+    let largest = cov
+        .symmetric_eigenvalues()
+        .iter()
+        .copied()
+        .fold(0.0_f64, f64::max)
+        .sqrt();
+    let ratio = largest / predicted;
+    assert!(
+        (0.75..1.25).contains(&ratio),
+        "Monte Carlo σ {largest:.5} vs predicted {predicted:.5} (ratio {ratio:.3})"
+    );
+    // The same bearings on points four times as far: four times the uncertainty.
+    let far: Vec<Vector3<f64>> = points.iter().map(|p| centre + (p - centre) * 4.0).collect();
+    let predicted_far =
+        absolute_pose_position_std(&cam_from_world, &bearings, &far, sigma).unwrap();
+    assert!(
+        (predicted_far / predicted - 4.0).abs() < 1e-6,
+        "far/near {}",
+        predicted_far / predicted
+    );
+    assert!(
+        absolute_pose_position_std(&cam_from_world, &bearings[..2], &points[..2], sigma).is_none()
+    );
 }

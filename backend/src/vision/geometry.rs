@@ -767,6 +767,48 @@ pub fn refine_absolute_pose(
     pose
 }
 
+/// Standard deviation (scene units) of the camera centre of `cam_from_world` along its least
+/// constrained direction, for bearings with isotropic angular noise `sigma_rad`: the square root
+/// of the largest eigenvalue of the translation block of the inverse Gauss–Newton information
+/// (tangent-plane residuals, rotation marginalized). The centre moves by `−Rᵀ δv` under a
+/// left update `exp([ω; v])`, and the eigenvalues are rotation invariant. Far points constrain
+/// the rotation but hardly the position; this says how well the inliers pin the position down.
+/// `None` when the information is singular (fewer than three usable points or degenerate).
+pub fn absolute_pose_position_std(
+    cam_from_world: &Pose,
+    bearings: &[Vector3<f64>],
+    points: &[Vector3<f64>],
+    sigma_rad: f64,
+) -> Option<f64> {
+    let mut h = Matrix6::<f64>::zeros();
+    let mut used = 0;
+    for (b, x) in bearings.iter().zip(points) {
+        let pc = (cam_from_world * Point3::from(*x)).coords;
+        let basis = tangent_basis(b);
+        let Some((_, j_p)) = tangent_residual(b, &basis, &pc) else {
+            continue;
+        };
+        let mut dp = Matrix3x6::<f64>::zeros();
+        dp.fixed_view_mut::<3, 3>(0, 0).copy_from(&(-hat(&pc)));
+        dp.fixed_view_mut::<3, 3>(0, 3)
+            .copy_from(&Matrix3::identity());
+        let j = j_p * dp;
+        h += j.transpose() * j;
+        used += 1;
+    }
+    if used < 3 || sigma_rad <= 0.0 {
+        return None;
+    }
+    let cov = h.try_inverse()?;
+    let block: Matrix3<f64> = cov.fixed_view::<3, 3>(3, 3).into_owned();
+    let largest = block
+        .symmetric_eigenvalues()
+        .iter()
+        .copied()
+        .fold(0.0_f64, f64::max);
+    (largest.is_finite() && largest > 0.0).then(|| largest.sqrt() * sigma_rad)
+}
+
 /// Huber cost `ρ(r)` of a residual norm (`r²/2` inside, linear outside).
 pub fn huber_cost(r: f64, k: f64) -> f64 {
     if r <= k {

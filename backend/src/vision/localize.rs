@@ -37,7 +37,9 @@ use crate::vision::features::{
     Descriptor, FrameFeatures, GrayImage, KltOptions, KltPyramid, Mask, MatchOptions, OrbExtractor,
     OrbOptions, match_descriptor_groups, track_klt_pyramids,
 };
-use crate::vision::geometry::{RansacOptions, absolute_pose_ransac, angular_error};
+use crate::vision::geometry::{
+    RansacOptions, absolute_pose_position_std, absolute_pose_ransac, angular_error,
+};
 use crate::vision::map::VisualMap;
 use crate::vision::place::KeyframeDatabase;
 
@@ -94,6 +96,11 @@ pub struct LocalizerOptions {
     pub min_inlier_ratio: f64,
     /// Smallest angular spread (rad) of the inlier bearings.
     pub min_spread_rad: f64,
+    /// Largest standard deviation of the camera position along its least constrained
+    /// direction (inlier bearings with 1 px noise, rotation marginalized), as a fraction of the
+    /// map's median keyframe-to-landmark distance (the map's scale is arbitrary; that distance
+    /// is the room's).
+    pub max_position_std: f64,
     /// Correspondences tracked from frame to frame.
     pub target_tracks: usize,
     /// Guided matching tops the correspondences up when fewer than this share of those held
@@ -147,6 +154,10 @@ impl Default for LocalizerOptions {
             min_inlier_ratio: 0.5,
             // ~6°: inliers on one small patch constrain the position poorly.
             min_spread_rad: 0.1,
+            // 0.5 % of a room's ~3 m median depth is 15 mm: on the 960 px walk (rear lens, far
+            // walls only at the walk's far end) accepted poses were off by up to ~3 σ, and every
+            // pose over 5 cm had σ above 20 mm.
+            max_position_std: 0.005,
             // ~200 well spread points are plenty for P3P; fewer keep KLT cheap.
             target_tracks: 200,
             // Top up once a third of the support is gone (not every frame: ORB is the
@@ -213,6 +224,32 @@ pub fn angular_spread(bearings: &[Vector3<f64>]) -> f64 {
     e[1].max(0.0).sqrt()
 }
 
+/// Median distance from a keyframe's centre to the landmarks it observes (map units); `None`
+/// when no keyframe observes a landmark at a positive distance.
+pub fn median_keyframe_depth(map: &VisualMap) -> Option<f64> {
+    let mut depths: Vec<f64> = Vec::new();
+    for k in &map.keyframes {
+        let Some(pose) = k.cam_from_map.to_pose() else {
+            continue;
+        };
+        for l in k.features.iter().filter_map(|f| f.landmark) {
+            if let Some(lm) = map.landmarks.get(l as usize) {
+                let d = (pose * Point3::from(Vector3::from(lm.position)))
+                    .coords
+                    .norm();
+                if d.is_finite() && d > 0.0 {
+                    depths.push(d);
+                }
+            }
+        }
+    }
+    if depths.is_empty() {
+        return None;
+    }
+    depths.sort_by(f64::total_cmp);
+    Some(depths[depths.len() / 2])
+}
+
 /// A 2-D correspondence: landmark, pixel and bearing in the query frame.
 #[derive(Debug, Clone, Copy)]
 struct Correspondence {
@@ -226,6 +263,14 @@ struct Estimate {
     cam_from_map: Pose,
     inliers: Vec<Correspondence>,
     candidates: usize,
+}
+
+/// Why tracking did not produce an accepted pose.
+enum TrackFailure {
+    /// Too few inliers, too low a ratio or too clustered: the reason and the inlier count.
+    Rejected(String, usize),
+    /// Supported by the tracks but the position is too uncertain: the estimate and the reason.
+    Uncertain(Estimate, String),
 }
 
 /// What is carried from one localized frame to the next.
@@ -243,6 +288,11 @@ pub struct Localizer {
     mask: Mask,
     options: LocalizerOptions,
     threshold_rad: f64,
+    /// Angle of one pixel at the image centre (rad): the noise of the pose-uncertainty check.
+    pixel_rad: f64,
+    /// Median distance from a keyframe to the landmarks it sees (map units): the map's length
+    /// scale for the pose-uncertainty check.
+    map_depth: f64,
     orb: OrbExtractor,
     database: KeyframeDatabase,
     vocabulary: crate::vision::place::Vocabulary,
@@ -317,13 +367,18 @@ impl Localizer {
                     .collect()
             })
             .collect();
-        let threshold_rad = options.threshold_px * pixel_angle(&camera);
+        let pixel_rad = pixel_angle(&camera);
+        let threshold_rad = options.threshold_px * pixel_rad;
+        let map_depth = median_keyframe_depth(&map)
+            .ok_or_else(|| vision_err("the map's keyframes see no landmark".into()))?;
         Ok(Self {
             orb: OrbExtractor::new(&options.orb)?,
             camera,
             mask,
             options,
             threshold_rad,
+            pixel_rad,
+            map_depth,
             database,
             vocabulary,
             positions: map
@@ -387,8 +442,14 @@ impl Localizer {
         })
     }
 
-    /// Strict acceptance: inlier count, ratio and spread.
+    /// Strict acceptance: inlier count, ratio and spread, then the position's uncertainty.
     fn accept(&self, e: &Estimate, min_inliers: usize) -> std::result::Result<(), String> {
+        self.accept_support(e, min_inliers)?;
+        self.check_position(e)
+    }
+
+    /// Inlier count, ratio and spread.
+    fn accept_support(&self, e: &Estimate, min_inliers: usize) -> std::result::Result<(), String> {
         let n = e.inliers.len();
         if n < min_inliers {
             return Err(format!("{n} inliers < {min_inliers}"));
@@ -409,6 +470,28 @@ impl Localizer {
             ));
         }
         Ok(())
+    }
+
+    /// The position's uncertainty against `max_position_std`.
+    fn check_position(&self, e: &Estimate) -> std::result::Result<(), String> {
+        let bearings: Vec<Vector3<f64>> = e.inliers.iter().map(|c| c.bearing).collect();
+        // Position uncertainty: inliers on far walls fix the rotation but hardly the position,
+        // and a bias of a pixel (map error, KLT drift) then moves the pose by centimetres.
+        let points: Vec<Vector3<f64>> = e
+            .inliers
+            .iter()
+            .map(|c| self.positions[c.landmark as usize])
+            .collect();
+        let limit = self.options.max_position_std * self.map_depth;
+        match absolute_pose_position_std(&e.cam_from_map, &bearings, &points, self.pixel_rad) {
+            Some(std) if std <= limit => Ok(()),
+            Some(std) => Err(format!(
+                "position poorly constrained: σ {:.2} % of the map's median depth > {:.2} %",
+                100.0 * std / self.map_depth,
+                100.0 * self.options.max_position_std
+            )),
+            None => Err("position unconstrained (singular information)".into()),
+        }
     }
 
     /// Landmarks seen by the `count` keyframes whose centres are nearest to the pose's centre.
@@ -518,9 +601,25 @@ impl Localizer {
                         baseline,
                     ));
                 }
-                Err((why, n)) => {
+                Err(TrackFailure::Rejected(why, n)) => {
                     reason = format!("tracking: {why}");
                     best_rejected = n;
+                }
+                Err(TrackFailure::Uncertain(e, why)) => {
+                    // The correspondences hold but do not pin the position down (far walls
+                    // only): no pose is output, and the tracks are carried on so that tracking
+                    // resumes once nearer structure comes back into view (relocalization from
+                    // the same view would meet the same geometry).
+                    let inliers = e.inliers.len();
+                    self.carry(&e, pyramid, usize::MAX);
+                    return Ok(FrameLocalization {
+                        frame,
+                        t,
+                        status: LocalizationStatus::Lost,
+                        map_from_cam: None,
+                        inliers,
+                        reason: format!("tracking: {why}"),
+                    });
                 }
             }
         }
@@ -574,6 +673,19 @@ impl Localizer {
             status = status.name(),
             "pose accepted"
         );
+        self.carry(e, pyramid, baseline);
+        FrameLocalization {
+            frame,
+            t,
+            status,
+            map_from_cam: Some(e.cam_from_map.inverse()),
+            inliers,
+            reason: String::new(),
+        }
+    }
+
+    /// Carry the estimate's well-fitting inliers to the next frame as the motion prior.
+    fn carry(&mut self, e: &Estimate, pyramid: KltPyramid, baseline: usize) {
         let carry_rad = self.options.carry_px / self.options.threshold_px * self.threshold_rad;
         let points: Vec<(u32, Point2<f64>)> = e
             .inliers
@@ -596,19 +708,10 @@ impl Localizer {
             cam_from_map: e.cam_from_map,
             baseline,
         });
-        FrameLocalization {
-            frame,
-            t,
-            status,
-            map_from_cam: Some(e.cam_from_map.inverse()),
-            inliers,
-            reason: String::new(),
-        }
     }
 
-    /// Tracking with the motion prior: the estimate and the carried-count baseline, or
-    /// `Err((reason, inliers))` when rejected.
-    #[allow(clippy::type_complexity)]
+    /// Tracking with the motion prior: the estimate and the carried-count baseline, or why it
+    /// was not accepted.
     fn track(
         &mut self,
         frame: u32,
@@ -616,7 +719,7 @@ impl Localizer {
         pyramid: &KltPyramid,
         state: &TrackState,
         features: &mut Option<FrameFeatures>,
-    ) -> Result<std::result::Result<(Estimate, usize), (String, usize)>> {
+    ) -> Result<std::result::Result<(Estimate, usize), TrackFailure>> {
         let pixels: Vec<Point2<f64>> = state.points.iter().map(|p| p.1).collect();
         let tracks = track_klt_pyramids(
             &state.pyramid,
@@ -682,11 +785,14 @@ impl Localizer {
         }
         let e = match self.estimate(&all, &self.ransac(frame, 2, ransac.min_inliers)) {
             Ok(e) => e,
-            Err(why) => return Ok(Err((why, 0))),
+            Err(why) => return Ok(Err(TrackFailure::Rejected(why, 0))),
         };
-        match self.accept(&e, ransac.min_inliers) {
+        if let Err(why) = self.accept_support(&e, ransac.min_inliers) {
+            return Ok(Err(TrackFailure::Rejected(why, e.inliers.len())));
+        }
+        match self.check_position(&e) {
             Ok(()) => Ok(Ok((e, usize::MAX))),
-            Err(why) => Ok(Err((why, e.inliers.len()))),
+            Err(why) => Ok(Err(TrackFailure::Uncertain(e, why))),
         }
     }
 
