@@ -76,7 +76,11 @@ fn main() {
     let mut o = CamImuOptions::new(
         &dir.join("cam_imu"),
         &dir.join("truth/calibration.json"),
-        &dir.join("target.yaml"),
+        // Captures rendered before the excitation had its own target yaml use the unit's.
+        &[dir.join("cam_imu/target.yaml"), dir.join("target.yaml")]
+            .into_iter()
+            .find(|p| p.is_file())
+            .unwrap_or_else(|| dir.join("target.yaml")),
     );
     o.frame_step = env_usize("FRAME_STEP", o.frame_step);
     o.keyframe_interval_s = std::env::var("KEYFRAME_INTERVAL")

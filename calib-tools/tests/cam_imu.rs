@@ -46,7 +46,7 @@ fn args(cap: &Path, intrinsics: &Path, out: &Path, guess: f64) -> CamImuArgs {
     CamImuArgs {
         capture: cap.join("cam_imu"),
         intrinsics: intrinsics.to_path_buf(),
-        target: cap.join("target.yaml"),
+        target: cap.join("cam_imu/target.yaml"),
         out: out.to_path_buf(),
         frame_step: 1,
         keyframe_interval: kiwi_calib::cam_imu::DEFAULT_KEYFRAME_INTERVAL_S,
@@ -171,7 +171,7 @@ fn cam_imu_recovers_extrinsics_and_time_shifts_and_names_bad_input() {
         text.push_str(&format!("{t},{}\n", rows[rows.len() - 1 - i].1));
     }
     std::fs::write(cam.join("imu.csv"), text).unwrap();
-    std::fs::copy(cap.join("target.yaml"), fake.join("target.yaml")).unwrap();
+    std::fs::copy(cap.join("cam_imu/target.yaml"), cam.join("target.yaml")).unwrap();
     let mut a = args(&fake, &intrinsics, &tmp.path().join("weak"), 0.0);
     a.frame_step = 4;
     let e = run(&a).unwrap_err().to_string();

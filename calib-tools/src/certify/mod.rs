@@ -854,7 +854,15 @@ fn run_steps(
     } else {
         let input = work.join("cam_imu_input.json");
         calibration.save(&input)?;
-        let mut co = CamImuOptions::new(&cam_imu_dir, &input, &target_path);
+        // The excitation may use its own board (large tags survive motion blur).
+        let own_target = cam_imu_dir.join("target.yaml");
+        let cam_imu_target = if own_target.is_file() {
+            inputs.push(own_target.clone());
+            own_target
+        } else {
+            target_path.clone()
+        };
+        let mut co = CamImuOptions::new(&cam_imu_dir, &input, &cam_imu_target);
         co.progress = false;
         if !imu_ok {
             tracing::warn!("IMU noise did not certify: camera–IMU uses default noise densities");
