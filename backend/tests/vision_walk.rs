@@ -15,7 +15,9 @@
 
 mod common;
 
-use common::{at, errors, keyframe_centres, session, tracked_map, truth};
+use common::{
+    assert_lost_frames_say_why, at, errors, keyframe_centres, session, tracked_map, truth,
+};
 
 use kiwi_backend::vision::align::{trajectory_error, umeyama};
 use kiwi_backend::vision::episode::{LensStream, build_map_with, localize_stream};
@@ -125,13 +127,7 @@ fn walk_far_from_the_start_localizes_in_the_room_sweep_map() {
         eprintln!("{camera} rear: {uncertain} frames lost as position poorly constrained");
         // Zero false localizations: a pose is right or the frame is reported lost.
         assert_eq!(over, 0, "accepted poses over 5 cm: {e:?}");
-        for r in &results {
-            assert_eq!(
-                r.map_from_cam.is_none(),
-                !r.reason.is_empty(),
-                "a lost frame says why, a localized one does not: {r:?}"
-            );
-        }
+        assert_lost_frames_say_why(&results);
         if camera == "left" {
             assert!(s.localized_fraction >= 0.95, "{s:?}");
             assert!(e[e.len() / 2] < MAX_MEDIAN_ERROR_M, "errors {e:?}");
@@ -183,13 +179,7 @@ fn walk_front_streams_localize_in_the_survey_front_map() {
         );
         // Zero false localizations: a pose is right or the frame is reported lost.
         assert_eq!(over, 0, "{camera} front: accepted poses over 5 cm: {e:?}");
-        for r in &results {
-            assert_eq!(
-                r.map_from_cam.is_none(),
-                !r.reason.is_empty(),
-                "a lost frame says why, a localized one does not: {r:?}"
-            );
-        }
+        assert_lost_frames_say_why(&results);
         if camera == "left" {
             assert!(s.localized_fraction >= MIN_FRONT_FRACTION, "{s:?}");
             assert!(e[e.len() / 2] < 0.015, "errors {e:?}");

@@ -93,3 +93,14 @@ pub fn tracked_map(episode: &Path, camera: &str, lens: &str) -> VisualMap {
     );
     map
 }
+
+/// Every lost frame says why, and no localized one carries a reason.
+pub fn assert_lost_frames_say_why(results: &[FrameLocalization]) {
+    for r in results {
+        assert_eq!(
+            r.map_from_cam.is_none(),
+            !r.reason.is_empty(),
+            "a lost frame says why, a localized one does not: {r:?}"
+        );
+    }
+}

@@ -6,7 +6,11 @@
 #![allow(dead_code, clippy::unwrap_used, clippy::expect_used)]
 
 use kiwi_core::artifact::UnitCalibration;
-use kiwi_core::camera::{Camera, CameraModel};
+
+#[allow(clippy::panic)]
+#[path = "../common_intrinsics/mod.rs"]
+mod common_intrinsics;
+use common_intrinsics::projection_rms;
 
 /// Intrinsics issue: focal lengths within 0.1 %.
 pub const FOCAL_REL: f64 = 1e-3;
@@ -48,30 +52,6 @@ impl TruthCheck {
     pub fn passed(&self) -> bool {
         self.error < self.limit
     }
-}
-
-/// RMS (px) of how far `fitted` projects the directions `truth` sees within `field` rad of the
-/// axis, over every 4th pixel of the truth's image.
-pub fn projection_rms(truth: &Camera, fitted: &Camera, field: f64) -> f64 {
-    let (w, h) = truth.resolution();
-    let (mut sum, mut n) = (0.0, 0usize);
-    for y in (0..h).step_by(4) {
-        for x in (0..w).step_by(4) {
-            let p = nalgebra::Point2::new(f64::from(x), f64::from(y));
-            let Some(b) = truth.unproject(&p) else {
-                continue;
-            };
-            if b.z.clamp(-1.0, 1.0).acos() > field {
-                continue;
-            }
-            let Some(q) = fitted.project(&b) else {
-                return f64::INFINITY;
-            };
-            sum += (q - p).norm_squared();
-            n += 1;
-        }
-    }
-    (sum / n as f64).sqrt()
 }
 
 /// Every compared value of `cal` against `truth`, with the issues' tolerances; the projection

@@ -11,7 +11,7 @@ use kiwi_core::camera::{Camera, CameraModel};
 use kiwi_fixtures::captures::{IntrinsicsDesign, UnitCaptureOptions, write_unit_captures};
 use kiwi_fixtures::unit::LensModel;
 
-/// A unit capture with only the intrinsics views (Kalibr's board, the default design).
+/// A unit capture with only the intrinsics views, of Kalibr's board (the detector tests).
 pub fn capture(dir: &Path, model: LensModel, views: usize, resolution: u32, seed: u64) -> PathBuf {
     capture_with(
         dir,
