@@ -399,7 +399,12 @@ fn absolute_pose_position_std_matches_monte_carlo_scatter() {
         .iter()
         .map(|p| (cam_from_world * Point3::from(*p)).coords.normalize())
         .collect();
-    let predicted = absolute_pose_position_std(&cam_from_world, &bearings, &points, sigma).unwrap();
+    let predicted = absolute_pose_position_std(
+        &cam_from_world,
+        bearings.iter().copied().zip(points.iter().copied()),
+        sigma,
+    )
+    .unwrap();
     let centre = world_from_cam.translation.vector;
     let trials = 400;
     let mut cov = nalgebra::Matrix3::<f64>::zeros();
@@ -424,14 +429,26 @@ fn absolute_pose_position_std_matches_monte_carlo_scatter() {
     );
     // The same bearings on points four times as far: four times the uncertainty.
     let far: Vec<Vector3<f64>> = points.iter().map(|p| centre + (p - centre) * 4.0).collect();
-    let predicted_far =
-        absolute_pose_position_std(&cam_from_world, &bearings, &far, sigma).unwrap();
+    let predicted_far = absolute_pose_position_std(
+        &cam_from_world,
+        bearings.iter().copied().zip(far.iter().copied()),
+        sigma,
+    )
+    .unwrap();
     assert!(
         (predicted_far / predicted - 4.0).abs() < 1e-6,
         "far/near {}",
         predicted_far / predicted
     );
     assert!(
-        absolute_pose_position_std(&cam_from_world, &bearings[..2], &points[..2], sigma).is_none()
+        absolute_pose_position_std(
+            &cam_from_world,
+            bearings[..2]
+                .iter()
+                .copied()
+                .zip(points[..2].iter().copied()),
+            sigma
+        )
+        .is_none()
     );
 }

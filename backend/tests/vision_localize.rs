@@ -14,7 +14,7 @@ mod common;
 
 use std::process::Command;
 
-use common::{errors, keyframe_centres, session, tracked_map, truth};
+use common::{describe_localization, errors, keyframe_centres, session, tracked_map, truth};
 
 use kiwi_backend::vision::align::{Sim3, umeyama};
 use kiwi_backend::vision::episode::{LensStream, localize_stream, summarize, write_poses_csv};
@@ -57,18 +57,7 @@ fn localization_against_a_frozen_map_on_the_simulator() {
     let (results, s) = localize_stream(&map, &query, &options, &mut |_, _| {}).unwrap();
     let e = errors(&results, &sim, &truth(&tabletop, "left", "front"));
     let (median, worst) = (e[e.len() / 2], e[e.len() - 1]);
-    eprintln!(
-        "left front: {} of {} localized ({:.1} %: {} tracked, {} relocalized), median {} \
-         inliers; position error median {:.1} mm, worst {:.1} mm",
-        s.localized,
-        s.frames,
-        100.0 * s.localized_fraction,
-        s.tracked,
-        s.relocalized,
-        s.median_inliers,
-        median * 1e3,
-        worst * 1e3
-    );
+    eprintln!("left front: {}", describe_localization(&s, &e));
     assert!(s.localized_fraction >= 0.85, "{s:?}");
     assert!(
         s.relocalized >= 1,

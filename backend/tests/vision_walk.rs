@@ -16,7 +16,8 @@
 mod common;
 
 use common::{
-    assert_lost_frames_say_why, at, errors, keyframe_centres, session, tracked_map, truth,
+    assert_lost_frames_say_why, at, describe_localization, errors, keyframe_centres, session,
+    tracked_map, truth,
 };
 
 use kiwi_backend::vision::align::{trajectory_error, umeyama};
@@ -109,16 +110,8 @@ fn walk_far_from_the_start_localizes_in_the_room_sweep_map() {
         let over = e.iter().filter(|&&x| x > 0.05).count();
         eprintln!(
             "{camera} rear, walk frames {WINDOW:?} ({nearest:.2} m or more from the mapping \
-             start): {} of {} localized ({:.1} %: {} tracked, {} relocalized), median {} \
-             inliers; position error median {:.1} mm, worst {:.1} mm, {over} over 5 cm",
-            s.localized,
-            s.frames,
-            100.0 * s.localized_fraction,
-            s.tracked,
-            s.relocalized,
-            s.median_inliers,
-            e.get(e.len() / 2).map_or(f64::NAN, |x| x * 1e3),
-            e.last().map_or(f64::NAN, |x| x * 1e3),
+             start): {}",
+            describe_localization(&s, &e)
         );
         let uncertain = results
             .iter()
@@ -165,17 +158,8 @@ fn walk_front_streams_localize_in_the_survey_front_map() {
         let e = errors(&results, &sim, &rows);
         let over = e.iter().filter(|&&x| x > 0.05).count();
         eprintln!(
-            "{camera} front, whole walk: {} of {} localized ({:.1} %: {} tracked, {} \
-             relocalized), median {} inliers; position error median {:.1} mm, worst {:.1} mm, \
-             {over} over 5 cm",
-            s.localized,
-            s.frames,
-            100.0 * s.localized_fraction,
-            s.tracked,
-            s.relocalized,
-            s.median_inliers,
-            e.get(e.len() / 2).map_or(f64::NAN, |x| x * 1e3),
-            e.last().map_or(f64::NAN, |x| x * 1e3),
+            "{camera} front, whole walk: {}",
+            describe_localization(&s, &e)
         );
         // Zero false localizations: a pose is right or the frame is reported lost.
         assert_eq!(over, 0, "{camera} front: accepted poses over 5 cm: {e:?}");

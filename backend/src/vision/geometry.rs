@@ -773,19 +773,19 @@ pub fn refine_absolute_pose(
 /// (tangent-plane residuals, rotation marginalized). The centre moves by `−Rᵀ δv` under a
 /// left update `exp([ω; v])`, and the eigenvalues are rotation invariant. Far points constrain
 /// the rotation but hardly the position; this says how well the inliers pin the position down.
-/// `None` when the information is singular (fewer than three usable points or degenerate).
+/// `observations` are (measured bearing, world point) pairs. `None` when the information is
+/// singular (fewer than three usable points or degenerate).
 pub fn absolute_pose_position_std(
     cam_from_world: &Pose,
-    bearings: &[Vector3<f64>],
-    points: &[Vector3<f64>],
+    observations: impl IntoIterator<Item = (Vector3<f64>, Vector3<f64>)>,
     sigma_rad: f64,
 ) -> Option<f64> {
     let mut h = Matrix6::<f64>::zeros();
     let mut used = 0;
-    for (b, x) in bearings.iter().zip(points) {
-        let pc = (cam_from_world * Point3::from(*x)).coords;
-        let basis = tangent_basis(b);
-        let Some((_, j_p)) = tangent_residual(b, &basis, &pc) else {
+    for (b, x) in observations {
+        let pc = (cam_from_world * Point3::from(x)).coords;
+        let basis = tangent_basis(&b);
+        let Some((_, j_p)) = tangent_residual(&b, &basis, &pc) else {
             continue;
         };
         let mut dp = Matrix3x6::<f64>::zeros();

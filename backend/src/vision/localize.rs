@@ -339,14 +339,6 @@ impl Localizer {
             .vocabulary
             .clone()
             .ok_or_else(|| vision_err("the map has no place-recognition vocabulary".into()))?;
-        let keyframe_landmarks = map
-            .keyframes
-            .iter()
-            .map(|k| {
-                let set: BTreeSet<u32> = k.features.iter().filter_map(|f| f.landmark).collect();
-                set.into_iter().collect()
-            })
-            .collect();
         let keyframe_centres = map
             .keyframes
             .iter()
@@ -365,6 +357,14 @@ impl Localizer {
                     .filter_map(|f| f.landmark.map(|l| (f.descriptor, l)))
                     .filter(|(_, l)| (*l as usize) < map.landmarks.len())
                     .collect()
+            })
+            .collect();
+        // Each keyframe's landmarks, once each and sorted.
+        let keyframe_landmarks = keyframe_views
+            .iter()
+            .map(|views| {
+                let set: BTreeSet<u32> = views.iter().map(|&(_, l)| l).collect();
+                set.into_iter().collect()
             })
             .collect();
         let pixel_rad = pixel_angle(&camera);
@@ -474,16 +474,14 @@ impl Localizer {
 
     /// The position's uncertainty against `max_position_std`.
     fn check_position(&self, e: &Estimate) -> std::result::Result<(), String> {
-        let bearings: Vec<Vector3<f64>> = e.inliers.iter().map(|c| c.bearing).collect();
         // Position uncertainty: inliers on far walls fix the rotation but hardly the position,
         // and a bias of a pixel (map error, KLT drift) then moves the pose by centimetres.
-        let points: Vec<Vector3<f64>> = e
+        let observations = e
             .inliers
             .iter()
-            .map(|c| self.positions[c.landmark as usize])
-            .collect();
+            .map(|c| (c.bearing, self.positions[c.landmark as usize]));
         let limit = self.options.max_position_std * self.map_depth;
-        match absolute_pose_position_std(&e.cam_from_map, &bearings, &points, self.pixel_rad) {
+        match absolute_pose_position_std(&e.cam_from_map, observations, self.pixel_rad) {
             Some(std) if std <= limit => Ok(()),
             Some(std) => Err(format!(
                 "position poorly constrained: σ {:.2} % of the map's median depth > {:.2} %",

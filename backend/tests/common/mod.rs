@@ -4,7 +4,7 @@
 use std::path::{Path, PathBuf};
 
 use kiwi_backend::vision::align::Sim3;
-use kiwi_backend::vision::episode::{LensStream, build_map};
+use kiwi_backend::vision::episode::{LensStream, LocalizeSummary, build_map};
 use kiwi_backend::vision::localize::FrameLocalization;
 use kiwi_backend::vision::map::VisualMap;
 use kiwi_fixtures::scenario::Scenario;
@@ -103,4 +103,22 @@ pub fn assert_lost_frames_say_why(results: &[FrameLocalization]) {
             "a lost frame says why, a localized one does not: {r:?}"
         );
     }
+}
+
+/// One line on a localized stream: frames localized (tracked, relocalized), median inliers, and
+/// the sorted position errors `e` (m) as median, worst and count over 5 cm.
+pub fn describe_localization(s: &LocalizeSummary, e: &[f64]) -> String {
+    format!(
+        "{} of {} localized ({:.1} %: {} tracked, {} relocalized), median {} inliers; position \
+         error median {:.1} mm, worst {:.1} mm, {} over 5 cm",
+        s.localized,
+        s.frames,
+        100.0 * s.localized_fraction,
+        s.tracked,
+        s.relocalized,
+        s.median_inliers,
+        e.get(e.len() / 2).map_or(f64::NAN, |x| x * 1e3),
+        e.last().map_or(f64::NAN, |x| x * 1e3),
+        e.iter().filter(|&&x| x > 0.05).count()
+    )
 }
