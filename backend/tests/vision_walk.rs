@@ -8,8 +8,8 @@
 //! map is built with loop closure; the left rear stream of the walk, in the middle of the
 //! walk (every frame at least 1 m from the mapping's first keyframe), is localized in the left
 //! rear map with position errors (after the map's Sim(3) to the truth) under 2 cm median and
-//! no accepted pose over 5 cm; the right wrist's rear
-//! stream in the same map never yields a pose over 5 cm either (localized or reported lost).
+//! no accepted pose over 5 cm; so is the right wrist's rear stream in the same map (the shared
+//! rear map).
 //! Small images (320 px, 30 Hz) keep the test short.
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
@@ -35,8 +35,9 @@ const WINDOW: std::ops::Range<usize> = 90..240;
 /// Every left-wrist frame of the window is at least this far from the mapping's first keyframe
 /// (m).
 const MIN_DISTANCE_FROM_START_M: f64 = 1.0;
-/// Median position error (m) of the window's left rear poses after the map's Sim(3) to the
-/// truth. Measured 16.1 mm: a near-constant offset (8-21 mm over the window) that is the map's own
+/// Median position error (m) of the window's rear poses (either wrist) after the map's Sim(3)
+/// to the truth. Measured 15.5 / 14.5 mm (left / right); before the front end kept near tracks,
+/// 16.1 mm (left): a near-constant offset (8-21 mm over the window) that is the map's own
 /// error in that part of the room (keyframe RMSE 21.8 mm); the earlier map (ATE 2.02 %) gave
 /// 12.7 mm here by a local coincidence. vision_localize's 1.5 cm is for a map built where it
 /// is queried.
@@ -121,10 +122,14 @@ fn walk_far_from_the_start_localizes_in_the_room_sweep_map() {
         // Zero false localizations: a pose is right or the frame is reported lost.
         assert_eq!(over, 0, "accepted poses over 5 cm: {e:?}");
         assert_lost_frames_say_why(&results);
-        if camera == "left" {
-            assert!(s.localized_fraction >= 0.95, "{s:?}");
-            assert!(e[e.len() / 2] < MAX_MEDIAN_ERROR_M, "errors {e:?}");
-        }
+        // Both wrists: the rear map is shared (measured 150/150 each, medians 15.5 and
+        // 14.5 mm, since the front end keeps tracks on the near floor and walls; the right
+        // wrist was 98/150 before).
+        assert!(s.localized_fraction >= 0.95, "{camera}: {s:?}");
+        assert!(
+            e[e.len() / 2] < MAX_MEDIAN_ERROR_M,
+            "{camera}: errors {e:?}"
+        );
     }
 }
 

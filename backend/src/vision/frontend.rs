@@ -1,9 +1,16 @@
 //! The image front-end of mapping: turns a sequence of fisheye frames into bearing tracks.
 //!
 //! Points are followed from frame to frame with pyramidal KLT (cheap at 120 Hz, where
-//! consecutive frames are nearly identical); when fewer than the target number survive, ORB
-//! keypoints are detected away from the surviving tracks (inside the static mask) and start new
-//! tracks. Each frame yields a [`MappingFrame`] for [`crate::vision::mapping::reconstruct`].
+//! consecutive frames are nearly identical); when fewer than the target number survive, or when
+//! part of the image holds no track, ORB keypoints are detected away from the surviving tracks
+//! (inside the static mask) and start new tracks, empty parts of the image first. Each frame
+//! yields a [`MappingFrame`] for [`crate::vision::mapping::reconstruct`].
+//!
+//! Coverage matters on a fisheye: points on a far wall live for hundreds of frames while the
+//! floor and the side walls near the lens rush past the image edge in a few. Kept by count
+//! alone, the tracks end up all on the far structure (measured on a rear lens walking down a
+//! room: 0-14 of 535 tracks beyond 70° off-axis, where ORB finds ~40 % of its keypoints), and the
+//! map has nothing near to fix a position with.
 
 use std::collections::BTreeMap;
 
@@ -26,6 +33,10 @@ pub struct TrackerOptions {
     pub replenish_ratio: f64,
     /// Smallest distance (px) between a new feature and any other track.
     pub min_distance_px: f64,
+    /// Cells per image side of the coverage grid.
+    pub grid_cells: u32,
+    /// Frames between detections made only because a usable grid cell holds no track.
+    pub coverage_interval: u32,
     /// KLT settings.
     pub klt: KltOptions,
     /// ORB settings of detection.
@@ -39,6 +50,11 @@ impl Default for TrackerOptions {
             // Detect again once a fifth of the tracks are gone.
             replenish_ratio: 0.8,
             min_distance_px: 10.0,
+            // 8 × 8: cells of 120 px at 960 px, a few degrees of view each on a 190° lens.
+            grid_cells: 8,
+            // Every 3rd frame: near points live ~10 frames at walking speed, and a detection
+            // costs as much as a tracked frame.
+            coverage_interval: 3,
             klt: KltOptions::default(),
             orb: OrbOptions::default(),
         }
@@ -54,14 +70,37 @@ pub struct FrameTracker {
     previous: Option<GrayImage>,
     active: Vec<(u64, Point2<f64>)>,
     births: BTreeMap<u64, Descriptor>,
+    /// Per grid cell: whether enough of it is inside the mask to hold tracks.
+    usable_cells: Vec<bool>,
+    /// Per grid cell: tracks in it (reused from frame to frame).
+    counts: Vec<usize>,
 }
+
+/// A grid cell holds tracks when at least this fraction of its pixels is inside the mask.
+const USABLE_CELL_FRACTION: f64 = 0.25;
 
 impl FrameTracker {
     /// A tracker with a static mask (non-zero pixels may hold features).
     pub fn new(options: TrackerOptions, mask: Mask) -> Result<Self> {
+        let n = options.grid_cells.max(1);
+        let mut inside = vec![0usize; (n * n) as usize];
+        for y in 0..mask.height {
+            for x in 0..mask.width {
+                if mask.data[(y * mask.width + x) as usize] != 0 {
+                    inside[cell_of(&mask, n, f64::from(x), f64::from(y))] += 1;
+                }
+            }
+        }
+        let cell_area = f64::from(mask.width) * f64::from(mask.height) / f64::from(n * n);
+        let usable_cells: Vec<bool> = inside
+            .iter()
+            .map(|&c| c as f64 >= USABLE_CELL_FRACTION * cell_area)
+            .collect();
         Ok(Self {
             orb: OrbExtractor::new(&options.orb)?,
             options,
+            counts: vec![0; usable_cells.len()],
+            usable_cells,
             mask,
             next_track: 0,
             previous: None,
@@ -108,29 +147,56 @@ impl FrameTracker {
             }
         }
         let wanted = self.options.target_tracks;
-        if (survivors.len() as f64) < self.options.replenish_ratio * wanted as f64 {
+        let n = self.options.grid_cells.max(1);
+        let counts = &mut self.counts;
+        counts.fill(0);
+        for s in &survivors {
+            counts[cell_of(&self.mask, n, s.1.x, s.1.y)] += 1;
+        }
+        let starved = counts
+            .iter()
+            .zip(&self.usable_cells)
+            .any(|(&c, &u)| u && c == 0);
+        let few = (survivors.len() as f64) < self.options.replenish_ratio * wanted as f64;
+        let coverage_due = starved && frame % self.options.coverage_interval.max(1) == 0;
+        if few || coverage_due {
             let mut detect_mask = self.mask.clone();
             let r = self.options.min_distance_px;
             block_disks(&mut detect_mask, survivors.iter().map(|s| s.1), r);
             let found = self.orb.extract(&image, Some(&detect_mask), camera)?;
-            for (kp, desc) in found.keypoints.into_iter().zip(found.descriptors) {
-                if survivors.len() >= wanted {
-                    break;
+            // Too few tracks: the strongest keypoints anywhere, up to the target. Coverage only:
+            // the cells below a fair share first (even past the target), then up to the target.
+            // (A fair share on every replenishment took weak-texture points over strong ones: a
+            // 320 px tabletop localized with a worst error of 53 mm instead of 24 mm.)
+            let usable = self.usable_cells.iter().filter(|&&u| u).count().max(1);
+            let share = wanted.div_ceil(usable).max(1);
+            let mut taken = vec![false; found.keypoints.len()];
+            for pass in 0..2 {
+                for (i, kp) in found.keypoints.iter().enumerate() {
+                    if taken[i] || (pass == 1 && survivors.len() >= wanted) {
+                        continue;
+                    }
+                    let c = cell_of(&self.mask, n, kp.pixel.x, kp.pixel.y);
+                    if pass == 0 && (few || counts[c] >= share) {
+                        continue;
+                    }
+                    let (x, y) = (kp.pixel.x.round() as i64, kp.pixel.y.round() as i64);
+                    if detect_mask.get(x, y) == 0 {
+                        continue;
+                    }
+                    block_disks(&mut detect_mask, std::iter::once(kp.pixel), r);
+                    taken[i] = true;
+                    counts[c] += 1;
+                    let id = self.next_track;
+                    self.next_track += 1;
+                    self.births.insert(id, found.descriptors[i]);
+                    survivors.push((id, kp.pixel));
+                    observations.push(TrackObservation {
+                        track: id,
+                        bearing: kp.bearing,
+                        pixel: kp.pixel,
+                    });
                 }
-                let (x, y) = (kp.pixel.x.round() as i64, kp.pixel.y.round() as i64);
-                if detect_mask.get(x, y) == 0 {
-                    continue;
-                }
-                block_disks(&mut detect_mask, std::iter::once(kp.pixel), r);
-                let id = self.next_track;
-                self.next_track += 1;
-                self.births.insert(id, desc);
-                survivors.push((id, kp.pixel));
-                observations.push(TrackObservation {
-                    track: id,
-                    bearing: kp.bearing,
-                    pixel: kp.pixel,
-                });
             }
         }
         self.active = survivors;
@@ -141,6 +207,14 @@ impl FrameTracker {
             observations,
         })
     }
+}
+
+/// The coverage-grid cell (row-major, `n` per side) of a pixel, clamped to the image.
+fn cell_of(mask: &Mask, n: u32, x: f64, y: f64) -> usize {
+    let cx = ((x / f64::from(mask.width.max(1))) * f64::from(n)).floor();
+    let cy = ((y / f64::from(mask.height.max(1))) * f64::from(n)).floor();
+    let clamp = |v: f64| (v.max(0.0) as u32).min(n - 1);
+    (clamp(cy) * n + clamp(cx)) as usize
 }
 
 /// Zero the mask in disks of radius `r` around the given pixels.
