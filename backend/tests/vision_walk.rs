@@ -36,7 +36,7 @@ const WINDOW: std::ops::Range<usize> = 90..240;
 /// (m).
 const MIN_DISTANCE_FROM_START_M: f64 = 1.0;
 /// Median position error (m) of the window's rear poses (either wrist) after the map's Sim(3)
-/// to the truth. Measured 15.5 / 14.5 mm (left / right); before the front end kept near tracks,
+/// to the truth. Measured 15.5 / 15.3 mm (left / right); before the front end kept near tracks,
 /// 16.1 mm (left): a near-constant offset (8-21 mm over the window) that is the map's own
 /// error in that part of the room (keyframe RMSE 21.8 mm); the earlier map (ATE 2.02 %) gave
 /// 12.7 mm here by a local coincidence. vision_localize's 1.5 cm is for a map built where it
@@ -122,10 +122,12 @@ fn walk_far_from_the_start_localizes_in_the_room_sweep_map() {
         // Zero false localizations: a pose is right or the frame is reported lost.
         assert_eq!(over, 0, "accepted poses over 5 cm: {e:?}");
         assert_lost_frames_say_why(&results);
-        // Both wrists: the rear map is shared (measured 150/150 each, medians 15.5 and
-        // 14.5 mm, since the front end keeps tracks on the near floor and walls; the right
-        // wrist was 98/150 before).
-        assert!(s.localized_fraction >= 0.95, "{camera}: {s:?}");
+        // Both wrists: the rear map is shared (measured 150/150 and 144/150, medians 15.5 and
+        // 15.3 mm, since the front end keeps tracks on the near floor and walls; the right
+        // wrist was 98/150 before). The right wrist's 6 lost frames are poorly constrained
+        // (σ 0.51-0.56 % of the depth, limit 0.5 %, at 320 px's 3× larger pixel).
+        let min_fraction = if camera == "left" { 0.95 } else { 0.9 };
+        assert!(s.localized_fraction >= min_fraction, "{camera}: {s:?}");
         assert!(
             e[e.len() / 2] < MAX_MEDIAN_ERROR_M,
             "{camera}: errors {e:?}"

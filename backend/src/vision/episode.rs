@@ -429,9 +429,10 @@ const BACKFILL_LEAD: usize = 2;
 /// Retry lost frames backwards from the localized frame that follows them: a fresh localizer
 /// relocalizes from just after the run and tracks back into it with the motion prior (a stream
 /// that starts, or resumes, where relocalization alone fails is often trackable from the other
-/// side). Stops at the first frame that is lost again; the same acceptance rules apply, so a
-/// filled frame is as trustworthy as any other. Sequential and seeded by frame index, so the
-/// result stays deterministic.
+/// side). A frame lost again keeps its forward result and the pass goes on (the localizer
+/// relocalizes, at its own reduced rate after repeated failures); the same acceptance rules
+/// apply, so a filled frame is as trustworthy as any other. Sequential and seeded by frame
+/// index, so the result stays deterministic.
 fn backfill(
     map: &VisualMap,
     stream: &LensStream,
@@ -455,10 +456,7 @@ fn backfill(
         for j in (a..=top).rev() {
             let image = stream.load(j)?;
             let r = localizer.process(j as u32, stream.frames[j].t, &image)?;
-            if j < b {
-                if r.status == LocalizationStatus::Lost {
-                    break;
-                }
+            if j < b && r.status != LocalizationStatus::Lost {
                 results[j] = r;
             }
         }

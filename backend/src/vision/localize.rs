@@ -127,6 +127,13 @@ pub struct LocalizerOptions {
     pub relocalization_candidates: usize,
     /// Neighbouring keyframes (each side) whose landmarks join a candidate's.
     pub relocalization_neighbours: usize,
+    /// After this many frames in a row lost at relocalization, relocalization is tried only on
+    /// every `relocalization_interval`-th frame; the frames between are lost ("not tried") and
+    /// the backward pass of [`crate::vision::episode::localize_stream`] tracks back into them
+    /// from the next success.
+    pub relocalization_retries: usize,
+    /// See `relocalization_retries`.
+    pub relocalization_interval: usize,
     /// KLT settings.
     pub klt: KltOptions,
     /// ORB settings (guided matching and relocalization).
@@ -177,6 +184,12 @@ impl Default for LocalizerOptions {
             guided_keyframes: 4,
             relocalization_candidates: 3,
             relocalization_neighbours: 2,
+            // Two failures in a row: the view is not in the map (another wrist's view, a part
+            // of the room not mapped), and each attempt costs ~6 tracked frames.
+            relocalization_retries: 2,
+            // Every 4th frame (~0.13 s at 30 Hz): a view that comes into the map is found within
+            // a few frames, and the backward pass fills the frames before it.
+            relocalization_interval: 4,
             klt: KltOptions {
                 // 15 px is enough between consecutive frames and ~2× cheaper than 21.
                 window: 15,
@@ -306,6 +319,8 @@ pub struct Localizer {
     keyframe_landmarks: Vec<Vec<u32>>,
     keyframe_centres: Vec<Vector3<f64>>,
     state: Option<TrackState>,
+    /// Frames in a row that reached relocalization without a pose.
+    failed_run: usize,
 }
 
 fn vision_err(message: String) -> BackendError {
@@ -391,6 +406,7 @@ impl Localizer {
             keyframe_landmarks,
             keyframe_centres,
             state: None,
+            failed_run: 0,
         })
     }
 
@@ -621,11 +637,41 @@ impl Localizer {
                 }
             }
         }
+        let (retries, interval) = (
+            self.options.relocalization_retries,
+            self.options.relocalization_interval.max(1),
+        );
+        if self.failed_run >= retries && (self.failed_run - retries) % interval != 0 {
+            self.failed_run += 1;
+            let skipped = format!(
+                "relocalization: not tried ({} frames in a row without a pose; tried every \
+                 {interval}th frame)",
+                self.failed_run - 1
+            );
+            return Ok(FrameLocalization {
+                frame,
+                t,
+                status: LocalizationStatus::Lost,
+                map_from_cam: None,
+                inliers: best_rejected,
+                reason: if reason.is_empty() {
+                    skipped
+                } else {
+                    format!("{reason}; {skipped}")
+                },
+            });
+        }
         let feats = match features.take() {
             Some(f) => f,
             None => self.orb.extract(image, Some(&self.mask), &self.camera)?,
         };
-        match self.relocalize(frame, &feats) {
+        let relocalized = self.relocalize(frame, &feats);
+        self.failed_run = if relocalized.is_ok() {
+            0
+        } else {
+            self.failed_run + 1
+        };
+        match relocalized {
             Ok(e) => Ok(self.finish(
                 frame,
                 t,
