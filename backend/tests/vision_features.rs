@@ -8,9 +8,11 @@ use kiwi_backend::vision::features::{
     FOV_MASK_MARGIN_RAD, GrayImage, KltOptions, MatchOptions, OrbExtractor, OrbOptions, fov_mask,
     intersect_masks, match_descriptors, track_klt,
 };
+use kiwi_backend::vision::frontend::{FrameTracker, TrackerOptions};
 use kiwi_backend::vision::geometry::{
     RansacOptions, angular_error, epipolar_error, essential_from_pose, relative_pose_ransac,
 };
+use kiwi_backend::vision::mapping::MappingFrame;
 use kiwi_core::camera::{Camera, CameraModel};
 use kiwi_core::geometry::{Pose, so3_exp};
 use kiwi_fixtures::render::{Extras, LensRays, RenderOptions, render};
@@ -260,4 +262,88 @@ fn features_and_tracks_do_not_depend_on_thread_counts() {
     let default = run(-1);
     assert_eq!(one, two);
     assert_eq!(one, default);
+}
+
+/// The tracks kept by the mapping front end cover the image: a part of the image whose tracks
+/// were lost (here overwritten with fresh noise for two frames, as when near structure rushes
+/// out of view) gets new tracks as soon as it shows texture again, although enough tracks
+/// survive elsewhere that the count alone would not detect again. Without the coverage rule it
+/// stays empty.
+#[test]
+fn the_front_end_refills_an_image_region_that_lost_its_tracks() {
+    // Fewer tracks than ORB finds at 320 px, and a count rule (detect below half the target)
+    // that the lost strip does not trigger: only the coverage rule can refill it.
+    const TARGET: usize = 200;
+    const REPLENISH_RATIO: f64 = 0.5;
+    let rig = rig(LensModel::Kb4);
+    let img = shoot(&rig, pose(Vector3::zeros(), Vector3::zeros()), 1);
+    let mask = fov_mask(&rig.camera, FOV_MASK_MARGIN_RAD);
+    // The left eighth of the image (one column of the 8 × 8 coverage grid) turns to noise that
+    // changes from frame to frame: KLT loses every track there.
+    let strip = SIZE / 8;
+    let scrambled = |seed: u64| {
+        let mut out = img.clone();
+        let mut state = seed;
+        for y in 0..SIZE {
+            for x in 0..strip {
+                state = state
+                    .wrapping_mul(6_364_136_223_846_793_005)
+                    .wrapping_add(1_442_695_040_888_963_407);
+                out.data[(y * SIZE + x) as usize] = (state >> 56) as u8;
+            }
+        }
+        out
+    };
+    let in_strip = |f: &MappingFrame| {
+        f.observations
+            .iter()
+            .filter(|o| o.pixel.x < f64::from(strip))
+            .count()
+    };
+    let run = |coverage_interval: u32| {
+        let options = TrackerOptions {
+            coverage_interval,
+            target_tracks: TARGET,
+            replenish_ratio: REPLENISH_RATIO,
+            ..TrackerOptions::default()
+        };
+        let mut tracker = FrameTracker::new(options, mask.clone()).unwrap();
+        let first = tracker.process(0, 0.0, img.clone(), &rig.camera).unwrap();
+        let mut last = first.clone();
+        for frame in 1..=2 {
+            last = tracker
+                .process(
+                    frame,
+                    f64::from(frame),
+                    scrambled(frame.into()),
+                    &rig.camera,
+                )
+                .unwrap();
+        }
+        let back = tracker.process(3, 3.0, img.clone(), &rig.camera).unwrap();
+        (
+            in_strip(&first),
+            last.observations.len(),
+            in_strip(&last),
+            in_strip(&back),
+        )
+    };
+    let (before, survivors, left, refilled) = run(3);
+    eprintln!(
+        "tracks in the strip: {before} at first, {left} after two noisy frames ({survivors} \
+         tracks in all), {refilled} once its texture returns"
+    );
+    assert!(before >= 5, "{before} tracks in the strip at first");
+    // Enough survive that the count rule does not detect again.
+    assert!(
+        survivors as f64 >= REPLENISH_RATIO * TARGET as f64,
+        "{survivors} survivors"
+    );
+    assert!(
+        refilled >= left + before / 2,
+        "{refilled} in the strip, {before} at first"
+    );
+    // Count-only replenishment adds nothing there.
+    let (_, _, left_off, refilled_off) = run(u32::MAX);
+    assert_eq!(refilled_off, left_off, "without the coverage rule");
 }
