@@ -158,7 +158,7 @@ impl FrameTracker {
             .zip(&self.usable_cells)
             .any(|(&c, &u)| u && c == 0);
         let few = (survivors.len() as f64) < self.options.replenish_ratio * wanted as f64;
-        let coverage_due = starved && frame % self.options.coverage_interval.max(1) == 0;
+        let coverage_due = starved && frame.is_multiple_of(self.options.coverage_interval.max(1));
         if few || coverage_due {
             let mut detect_mask = self.mask.clone();
             let r = self.options.min_distance_px;

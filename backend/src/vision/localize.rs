@@ -641,7 +641,7 @@ impl Localizer {
             self.options.relocalization_retries,
             self.options.relocalization_interval.max(1),
         );
-        if self.failed_run >= retries && (self.failed_run - retries) % interval != 0 {
+        if self.failed_run >= retries && !(self.failed_run - retries).is_multiple_of(interval) {
             self.failed_run += 1;
             let skipped = format!(
                 "relocalization: not tried ({} frames in a row without a pose; tried every \
