@@ -52,9 +52,12 @@ pub struct MapArgs {
     /// Output map file (.kmap).
     #[arg(long)]
     pub out: PathBuf,
-    /// Close loops (place recognition, verification, Sim(3) pose graph, landmark fusion,
-    /// global BA) before the map is written; experimental, off by default (docs/vision.md).
+    /// Do not close loops. By default loops are closed before the map is written (place
+    /// recognition, verification, Sim(3) pose graph, landmark fusion, global BA; docs/vision.md).
     #[arg(long)]
+    pub no_loop_closure: bool,
+    /// Close loops: the default since session 9, kept so that older scripts still run.
+    #[arg(long, hide = true, conflicts_with = "no_loop_closure")]
     pub loop_closure: bool,
     /// Print a JSON summary.
     #[arg(long)]
@@ -119,7 +122,7 @@ pub fn run_map(a: &MapArgs) -> Result<()> {
         a.mask.as_deref(),
     )?;
     let pb = bar(stream.frames.len(), a.json, "tracking");
-    let (map, summary) = build_map_with(&stream, a.loop_closure, &mut |done, _| {
+    let (map, summary) = build_map_with(&stream, !a.no_loop_closure, &mut |done, _| {
         pb.set_position(done as u64);
     })
     .with_context(|| format!("mapping {}", a.episode.display()))?;

@@ -644,8 +644,8 @@ impl Localizer {
         if self.failed_run >= retries && !(self.failed_run - retries).is_multiple_of(interval) {
             self.failed_run += 1;
             let skipped = format!(
-                "relocalization: not tried ({} frames in a row without a pose; tried every \
-                 {interval}th frame)",
+                "relocalization: not tried ({} frames in a row without a pose; now tried on \
+                 one frame in {interval})",
                 self.failed_run - 1
             );
             return Ok(FrameLocalization {
