@@ -263,7 +263,7 @@ pub fn build_map(
 /// [`build_map`], with loop closure (`vision::loop_closure`) before the map is exported only
 /// when `loop_closure` is set. On in [`build_map`]: on the 960 px 60 s survey it halves the
 /// shared rear map's keyframe ATE (0.069 -> 0.036 %) and the tabletop's rear errors
-/// (medians 5.7 -> 2.0 / 3.1 mm), for ~40 % more mapping time (docs/vision.md).
+/// (medians 5.7 -> 2.0 / 3.1 mm) for little extra mapping time (docs/vision.md).
 pub fn build_map_with(
     stream: &LensStream,
     loop_closure: bool,
