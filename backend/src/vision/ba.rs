@@ -16,12 +16,14 @@
 
 use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::{Mat, Par};
-use nalgebra::{Matrix2x3, Matrix3, Matrix6, Matrix6x3, SMatrix, Vector3, Vector6};
+use nalgebra::{Matrix2x3, Matrix3, Matrix6, Matrix6x3, Vector3, Vector6};
 
-use kiwi_core::geometry::{Pose, hat, se3_exp};
+use kiwi_core::geometry::{Pose, se3_exp};
 
 use crate::error::{BackendError, Result};
-use crate::vision::geometry::{huber_cost, huber_weight, tangent_basis, tangent_residual};
+use crate::vision::geometry::{
+    huber_cost, huber_weight, point_jacobian_left_update, tangent_basis, tangent_residual,
+};
 
 /// One observation: camera `camera` sees point `point` along the unit `bearing`.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -266,11 +268,7 @@ pub fn bundle_adjust(problem: &mut BaProblem, options: &BaOptions) -> Result<BaR
                 let slot = cam_slot[o.camera];
                 let j_pt = j_p * pose.rotation.to_rotation_matrix().matrix();
                 if slot != usize::MAX {
-                    let mut dp = SMatrix::<f64, 3, 6>::zeros();
-                    dp.fixed_view_mut::<3, 3>(0, 0).copy_from(&(-hat(&pc)));
-                    dp.fixed_view_mut::<3, 3>(0, 3)
-                        .copy_from(&Matrix3::identity());
-                    let j_c = j_p * dp;
+                    let j_c = j_p * point_jacobian_left_update(&pc);
                     u[slot] += j_c.transpose() * j_c * wt;
                     gc[slot] += j_c.transpose() * r * wt;
                     w[k] = j_c.transpose() * j_pt * wt;

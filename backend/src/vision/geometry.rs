@@ -60,6 +60,16 @@ pub fn angular_error(bearing: &Vector3<f64>, point: &Vector3<f64>) -> f64 {
     bearing.cross(point).norm().atan2(bearing.dot(point))
 }
 
+/// Jacobian of a camera-frame point `pc = T x` with respect to a left update of its pose,
+/// `T ← exp(δ) T` with `δ = [ω; v]`: `[−[pc]×, I]`.
+pub fn point_jacobian_left_update(pc: &Vector3<f64>) -> Matrix3x6<f64> {
+    let mut dp = Matrix3x6::<f64>::zeros();
+    dp.fixed_view_mut::<3, 3>(0, 0).copy_from(&(-hat(pc)));
+    dp.fixed_view_mut::<3, 3>(0, 3)
+        .copy_from(&Matrix3::identity());
+    dp
+}
+
 /// Tangent-plane residual of a point `point` (camera frame) against the measured unit
 /// `bearing`, with its 2×3 Jacobian with respect to `point`.
 ///
@@ -743,11 +753,7 @@ pub fn refine_absolute_pose(
                 continue;
             };
             let w = huber_weight(r.norm(), huber_rad);
-            let mut dp = Matrix3x6::<f64>::zeros();
-            dp.fixed_view_mut::<3, 3>(0, 0).copy_from(&(-hat(&pc)));
-            dp.fixed_view_mut::<3, 3>(0, 3)
-                .copy_from(&Matrix3::identity());
-            let j = j_p * dp;
+            let j = j_p * point_jacobian_left_update(&pc);
             h += j.transpose() * j * w;
             g += j.transpose() * r * w;
         }
@@ -788,11 +794,7 @@ pub fn absolute_pose_position_std(
         let Some((_, j_p)) = tangent_residual(&b, &basis, &pc) else {
             continue;
         };
-        let mut dp = Matrix3x6::<f64>::zeros();
-        dp.fixed_view_mut::<3, 3>(0, 0).copy_from(&(-hat(&pc)));
-        dp.fixed_view_mut::<3, 3>(0, 3)
-            .copy_from(&Matrix3::identity());
-        let j = j_p * dp;
+        let j = j_p * point_jacobian_left_update(&pc);
         h += j.transpose() * j;
         used += 1;
     }
