@@ -82,6 +82,20 @@ pub struct FrameLocalization {
     pub reason: String,
 }
 
+impl FrameLocalization {
+    /// A lost frame: no pose, the best rejected inlier count and why.
+    fn lost(frame: u32, t: f64, inliers: usize, reason: String) -> Self {
+        Self {
+            frame,
+            t,
+            status: LocalizationStatus::Lost,
+            map_from_cam: None,
+            inliers,
+            reason,
+        }
+    }
+}
+
 /// Localizer settings. Angular thresholds are given in pixels at the image centre and converted
 /// with the lens's own scale, so the same settings serve 320 px tests and 960 px episodes.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -626,40 +640,39 @@ impl Localizer {
                     // the same view would meet the same geometry).
                     let inliers = e.inliers.len();
                     self.carry(&e, pyramid, usize::MAX);
-                    return Ok(FrameLocalization {
+                    return Ok(FrameLocalization::lost(
                         frame,
                         t,
-                        status: LocalizationStatus::Lost,
-                        map_from_cam: None,
                         inliers,
-                        reason: format!("tracking: {why}"),
-                    });
+                        format!("tracking: {why}"),
+                    ));
                 }
             }
         }
+        // The tracking reason (if any) comes first in a lost frame's reason.
+        let after_tracking = |why: String| {
+            if reason.is_empty() {
+                why
+            } else {
+                format!("{reason}; {why}")
+            }
+        };
         let (retries, interval) = (
             self.options.relocalization_retries,
             self.options.relocalization_interval.max(1),
         );
-        if self.failed_run >= retries && !(self.failed_run - retries).is_multiple_of(interval) {
+        let run = self.failed_run;
+        if run >= retries && !(run - retries).is_multiple_of(interval) {
             self.failed_run += 1;
-            let skipped = format!(
-                "relocalization: not tried ({} frames in a row without a pose; now tried on \
-                 one frame in {interval})",
-                self.failed_run - 1
-            );
-            return Ok(FrameLocalization {
+            return Ok(FrameLocalization::lost(
                 frame,
                 t,
-                status: LocalizationStatus::Lost,
-                map_from_cam: None,
-                inliers: best_rejected,
-                reason: if reason.is_empty() {
-                    skipped
-                } else {
-                    format!("{reason}; {skipped}")
-                },
-            });
+                best_rejected,
+                after_tracking(format!(
+                    "relocalization: not tried ({run} frames in a row without a pose; now \
+                     tried on one frame in {interval})"
+                )),
+            ));
         }
         let feats = match features.take() {
             Some(f) => f,
@@ -680,21 +693,12 @@ impl Localizer {
                 LocalizationStatus::Relocalized,
                 usize::MAX,
             )),
-            Err((why, n)) => {
-                let reason = if reason.is_empty() {
-                    format!("relocalization: {why}")
-                } else {
-                    format!("{reason}; relocalization: {why}")
-                };
-                Ok(FrameLocalization {
-                    frame,
-                    t,
-                    status: LocalizationStatus::Lost,
-                    map_from_cam: None,
-                    inliers: n.max(best_rejected),
-                    reason,
-                })
-            }
+            Err((why, n)) => Ok(FrameLocalization::lost(
+                frame,
+                t,
+                n.max(best_rejected),
+                after_tracking(format!("relocalization: {why}")),
+            )),
         }
     }
 
