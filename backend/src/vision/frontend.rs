@@ -74,6 +74,8 @@ pub struct FrameTracker {
     usable_cells: Vec<bool>,
     /// Per grid cell: tracks in it (reused from frame to frame).
     counts: Vec<usize>,
+    /// A usable cell's fair share of the target: `target_tracks` / usable cells.
+    share: usize,
 }
 
 /// A grid cell holds tracks when at least this fraction of its pixels is inside the mask.
@@ -96,8 +98,10 @@ impl FrameTracker {
             .iter()
             .map(|&c| c as f64 >= USABLE_CELL_FRACTION * cell_area)
             .collect();
+        let usable = usable_cells.iter().filter(|&&u| u).count().max(1);
         Ok(Self {
             orb: OrbExtractor::new(&options.orb)?,
+            share: options.target_tracks.div_ceil(usable).max(1),
             options,
             counts: vec![0; usable_cells.len()],
             usable_cells,
@@ -148,36 +152,36 @@ impl FrameTracker {
         }
         let wanted = self.options.target_tracks;
         let n = self.options.grid_cells.max(1);
-        let counts = &mut self.counts;
-        counts.fill(0);
-        for s in &survivors {
-            counts[cell_of(&self.mask, n, s.1.x, s.1.y)] += 1;
-        }
-        let starved = counts
-            .iter()
-            .zip(&self.usable_cells)
-            .any(|(&c, &u)| u && c == 0);
         let few = (survivors.len() as f64) < self.options.replenish_ratio * wanted as f64;
-        let coverage_due = starved && frame.is_multiple_of(self.options.coverage_interval.max(1));
+        // Coverage is checked only when it could trigger a detection of its own.
+        let coverage_due = !few && frame.is_multiple_of(self.options.coverage_interval.max(1)) && {
+            self.counts.fill(0);
+            for s in &survivors {
+                self.counts[cell_of(&self.mask, n, s.1.x, s.1.y)] += 1;
+            }
+            self.counts
+                .iter()
+                .zip(&self.usable_cells)
+                .any(|(&c, &u)| u && c == 0)
+        };
         if few || coverage_due {
             let mut detect_mask = self.mask.clone();
             let r = self.options.min_distance_px;
             block_disks(&mut detect_mask, survivors.iter().map(|s| s.1), r);
             let found = self.orb.extract(&image, Some(&detect_mask), camera)?;
             // Too few tracks: the strongest keypoints anywhere, up to the target. Coverage only:
-            // the cells below a fair share first (even past the target), then up to the target.
+            // first the cells below a fair share (even past the target), then up to the target.
             // (A fair share on every replenishment took weak-texture points over strong ones: a
-            // 320 px tabletop localized with a worst error of 53 mm instead of 24 mm.)
-            let usable = self.usable_cells.iter().filter(|&&u| u).count().max(1);
-            let share = wanted.div_ceil(usable).max(1);
-            let mut taken = vec![false; found.keypoints.len()];
-            for pass in 0..2 {
-                for (i, kp) in found.keypoints.iter().enumerate() {
-                    if taken[i] || (pass == 1 && survivors.len() >= wanted) {
-                        continue;
+            // 320 px tabletop localized with a worst error of 53 mm instead of 24 mm.) A taken
+            // keypoint blocks its own pixel in `detect_mask`, so the second pass skips it.
+            let first_pass = if coverage_due { 0 } else { 1 };
+            for pass in first_pass..2 {
+                for (kp, desc) in found.keypoints.iter().zip(&found.descriptors) {
+                    if pass == 1 && survivors.len() >= wanted {
+                        break;
                     }
                     let c = cell_of(&self.mask, n, kp.pixel.x, kp.pixel.y);
-                    if pass == 0 && (few || counts[c] >= share) {
+                    if pass == 0 && self.counts[c] >= self.share {
                         continue;
                     }
                     let (x, y) = (kp.pixel.x.round() as i64, kp.pixel.y.round() as i64);
@@ -185,11 +189,12 @@ impl FrameTracker {
                         continue;
                     }
                     block_disks(&mut detect_mask, std::iter::once(kp.pixel), r);
-                    taken[i] = true;
-                    counts[c] += 1;
+                    if pass == 0 {
+                        self.counts[c] += 1;
+                    }
                     let id = self.next_track;
                     self.next_track += 1;
-                    self.births.insert(id, found.descriptors[i]);
+                    self.births.insert(id, *desc);
                     survivors.push((id, kp.pixel));
                     observations.push(TrackObservation {
                         track: id,
