@@ -12,8 +12,8 @@
 use std::fmt::Write as _;
 use std::time::Instant;
 
-use kiwi_backend::estimate::fusion::{FusionConfig, PoseObservation, Source, fuse};
-use kiwi_backend::estimate::preint::ImuParams;
+use kiwi_backend::fusion::preint::ImuParams;
+use kiwi_backend::fusion::{FusionConfig, PoseObservation, Source, fuse};
 use kiwi_core::geometry::se3_exp;
 use kiwi_fixtures::imu::{GRAVITY, ImuSimulator};
 use kiwi_fixtures::rng::{normal, stream, uniform};

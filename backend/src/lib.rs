@@ -1,14 +1,23 @@
 //! `kiwi-backend`: reconstruct episodes recorded on certified units.
 //!
-//! Stage modules (sync, vision, metric, placement, fusion, gripper, head, ground, export,
-//! splat, report) arrive with their issues. Today: [`inspect`], which checks that a session and
-//! its prepared episodes are complete before any stage runs, and [`sync`], audio time
-//! synchronisation.
+//! One module per stage, named as the paper names it: [`sync`] (§4.1), [`vision`] (maps and
+//! localization, §4.2), [`metric`] (metric recovery), [`placement`] (eq. 2),
+//! [`observations`] (eq. 3), [`fusion`] (eq. 4), [`gripper`] (§4.3.1) and [`outputs`] with
+//! [`quality`] (the deliverables and how far to trust them). [`pipeline`] runs them as one
+//! graph (`kiwi run`); [`formats`] holds the files the stages exchange; [`inspect`] checks a
+//! session before anything runs.
 
 pub mod error;
-pub mod estimate;
+pub mod formats;
+pub mod fusion;
 pub mod gripper;
 pub mod inspect;
+pub mod metric;
+pub mod observations;
+pub mod outputs;
+pub mod pipeline;
+pub mod placement;
+pub mod quality;
 pub mod sync;
 pub mod vision;
 

@@ -3,8 +3,8 @@
 //! observations with 1 mm / 0.1° noise, 5 % outliers and a 2 s gap; ATE < 2 mm outside the gap,
 //! < 2 cm inside; outliers move the solution by < 0.5 mm.
 
-use kiwi_backend::estimate::fusion::{FusionConfig, PoseObservation, Source, fuse};
-use kiwi_backend::estimate::preint::ImuParams;
+use kiwi_backend::fusion::preint::ImuParams;
+use kiwi_backend::fusion::{FusionConfig, PoseObservation, Source, fuse};
 use kiwi_core::geometry::{Pose, se3_exp};
 use kiwi_fixtures::imu::{GRAVITY, ImuSimulator};
 use kiwi_fixtures::motion::Trajectory;

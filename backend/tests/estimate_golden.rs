@@ -3,9 +3,9 @@
 //! preintegration, covariance, bias Jacobians and `CombinedImuFactor` residuals to 1e-9
 //! relative; a 2000-node IMU + robust pose-prior problem solved to the same trajectory (1e-6 m).
 
-use kiwi_backend::estimate::chain::{ChainProblem, ImuNoiseModel, LmSettings, PoseFactor};
-use kiwi_backend::estimate::factors::{NavNode, imu_linearize, rotation_matrix};
-use kiwi_backend::estimate::preint::{ImuBias, ImuParams, Matrix15, Preintegrated};
+use kiwi_backend::fusion::chain::{ChainProblem, ImuNoiseModel, LmSettings, PoseFactor};
+use kiwi_backend::fusion::factors::{NavNode, imu_linearize, rotation_matrix};
+use kiwi_backend::fusion::preint::{ImuBias, ImuParams, Matrix15, Preintegrated};
 use kiwi_core::geometry::{Pose, se3_exp, so3_right_jacobian};
 use nalgebra::{
     DMatrix, Isometry3, Matrix3, Quaternion, Translation3, UnitQuaternion, Vector3, Vector6,

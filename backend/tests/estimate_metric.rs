@@ -4,8 +4,8 @@
 //! frames and a few wrong relocalizations; and a refusal (not a scale) when the recording has
 //! too little acceleration.
 
-use kiwi_backend::estimate::metric::{MapFrame, MetricConfig, recover_metric};
-use kiwi_backend::estimate::preint::ImuParams;
+use kiwi_backend::fusion::preint::ImuParams;
+use kiwi_backend::metric::{MapFrame, MetricConfig, recover_metric};
 use kiwi_core::geometry::{Pose, se3_exp};
 use kiwi_core::imu::ImuSample;
 use kiwi_fixtures::imu::{GRAVITY, ImuSimulator};

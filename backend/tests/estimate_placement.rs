@@ -2,7 +2,7 @@
 //! Placement acceptance on a simulated mapping episode: `scene_from_front_map` within 1 mm /
 //! 0.05° of the truth despite noisy localizations and 10 % failed relocalizations.
 
-use kiwi_backend::estimate::placement::{PlacementConfig, PlacementPair, place};
+use kiwi_backend::placement::{PlacementConfig, PlacementPair, place};
 use kiwi_core::geometry::{Pose, rotation_angle_between, se3_exp};
 use kiwi_fixtures::rng::{normal, stream, uniform};
 use kiwi_fixtures::scenario::{Scenario, episode_motion};

@@ -109,6 +109,9 @@ pub struct Session {
     pub name: String,
     /// The episode whose recordings build the maps.
     pub map_episode: String,
+    /// The wrist whose rear lens builds the shared rear (scene) map (default: left).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub map_wrist: Option<Side>,
     /// Wrist cameras by side (`left`, `right`).
     pub wrists: BTreeMap<Side, WristConfig>,
     /// The head camera, if worn.
@@ -193,6 +196,19 @@ impl Session {
                 "name the episode whose recordings build the maps",
             ));
         }
+        if let Some(side) = self.map_wrist
+            && !self.wrists.contains_key(&side)
+        {
+            return Err(CoreError::invalid_value(
+                "map_wrist",
+                "a wrist of the session",
+                side.camera_name(),
+                format!(
+                    "add [wrists.{}] or set map_wrist to a wrist the session has",
+                    side.camera_name()
+                ),
+            ));
+        }
         if let Some(h) = &self.head
             && !(h.marker_size_m.is_finite() && h.marker_size_m > 0.0 && h.marker_size_m < 1.0)
         {
@@ -232,6 +248,14 @@ impl Session {
             }
         }
         Ok(())
+    }
+
+    /// The wrist whose rear lens builds the shared rear map: `map_wrist`, else the left wrist
+    /// when the session has one, else the right.
+    pub fn map_side(&self) -> Side {
+        self.map_wrist
+            .or_else(|| self.wrists.keys().next().copied())
+            .unwrap_or(Side::Left)
     }
 
     /// The folder of an episode.

@@ -3,9 +3,30 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
-use kiwi_backend::sync::CameraStatus;
-use kiwi_backend::sync::stage::{StageOutcome, run};
+use kiwi_backend::pipeline::runner::{NoProgress, Outcome};
+use kiwi_backend::pipeline::{RunOptions, SessionContext, run};
+use kiwi_backend::sync::{CameraStatus, SyncResult};
 use kiwi_fixtures::session::{SessionOptions, write_session};
+
+fn run_sync(ctx: &SessionContext) -> Outcome {
+    let report = run(
+        ctx,
+        &RunOptions {
+            episodes: Some(vec!["ep000".into()]),
+            only: Some(vec!["sync".into()]),
+            ..Default::default()
+        },
+        &NoProgress,
+    )
+    .unwrap();
+    report
+        .stages
+        .iter()
+        .find(|s| s.stage == "ep000/sync")
+        .unwrap()
+        .outcome
+        .clone()
+}
 
 #[test]
 fn sync_stage_places_every_camera_of_a_simulated_episode() {
@@ -16,10 +37,12 @@ fn sync_stage_places_every_camera_of_a_simulated_episode() {
     o.rate_hz = 2.0;
     o.duration_s = 40.0;
     let summary = write_session(&o).unwrap();
-    let StageOutcome::Written(_, result) = run(&summary.session_toml, "ep000", false).unwrap()
-    else {
-        panic!("first run must write")
-    };
+    let ctx = SessionContext::load(&summary.session_toml).unwrap();
+    assert!(matches!(run_sync(&ctx), Outcome::Ran { .. }));
+    let result: SyncResult = serde_json::from_str(
+        &std::fs::read_to_string(dir.path().join("s/episodes/ep000/work/sync/sync.json")).unwrap(),
+    )
+    .unwrap();
     let truth: serde_json::Value = serde_json::from_str(
         &std::fs::read_to_string(dir.path().join("s/episodes/ep000/truth/clocks.json")).unwrap(),
     )
@@ -58,8 +81,5 @@ fn sync_stage_places_every_camera_of_a_simulated_episode() {
         );
     }
     // A second run with unchanged inputs is skipped.
-    assert!(matches!(
-        run(&summary.session_toml, "ep000", false).unwrap(),
-        StageOutcome::UpToDate(_)
-    ));
+    assert_eq!(run_sync(&ctx), Outcome::Current);
 }

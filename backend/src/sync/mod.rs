@@ -13,7 +13,8 @@
 pub mod audio;
 pub mod fingerprint;
 pub mod refine;
-pub mod stage;
+
+use std::path::Path;
 
 use rayon::prelude::*;
 use serde::Serialize;
@@ -21,6 +22,8 @@ use serde::Serialize;
 use audio::{Audio, decimate, resample};
 use fingerprint::{ANALYSIS_RATE_HZ, Fingerprint, HOP};
 use refine::{LineFit, WindowLag, robust_line, window_lags};
+
+use crate::error::{BackendError, Result};
 
 /// Common sample rate every recording is brought to (Hz).
 pub const COMMON_RATE_HZ: f64 = 48_000.0;
@@ -56,7 +59,7 @@ pub struct SyncInput {
 }
 
 /// How a camera was placed.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, serde::Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum CameraStatus {
     /// The reference (first) camera.
@@ -70,7 +73,7 @@ pub enum CameraStatus {
 }
 
 /// One camera's clock on the session timeline.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, serde::Deserialize)]
 pub struct CameraClock {
     /// Camera name.
     pub name: String,
@@ -85,7 +88,7 @@ pub struct CameraClock {
 }
 
 /// The evidence for one pair.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, serde::Deserialize)]
 pub struct PairEvidence {
     /// Camera A.
     pub a: String,
@@ -124,7 +127,7 @@ pub struct PairEvidence {
 }
 
 /// A triangle's closure residual (s): the lag around it should sum to zero.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, serde::Deserialize)]
 pub struct Closure {
     /// The three cameras.
     pub cameras: [String; 3],
@@ -133,7 +136,7 @@ pub struct Closure {
 }
 
 /// The result of synchronising an episode's cameras.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, serde::Deserialize)]
 pub struct SyncResult {
     /// Per camera, in input order (the first is the reference).
     pub cameras: Vec<CameraClock>,
@@ -612,4 +615,25 @@ fn triangle_closures(pairs: &[PairEvidence], inputs: &[SyncInput]) -> Vec<Closur
         }
     }
     out
+}
+
+/// The A/V delay of `mode` in a calibration, or an error saying how to get it.
+pub fn av_delay_for(
+    calibration: &kiwi_core::artifact::UnitCalibration,
+    mode: Option<&str>,
+    path: &Path,
+) -> Result<f64> {
+    let found = match mode {
+        Some(m) => calibration.av_delays.iter().find(|d| d.mode == m),
+        None if calibration.av_delays.len() == 1 => calibration.av_delays.first(),
+        None => None,
+    };
+    found.map(|d| d.delay_s).ok_or_else(|| BackendError::Input {
+        path: path.to_path_buf(),
+        message: format!(
+            "no A/V delay for recording mode {}; the unit has delays for [{}]: certify it with `kiwi-calib av-delay`, or name the mode",
+            mode.unwrap_or("(unspecified)"),
+            calibration.av_delays.iter().map(|d| d.mode.as_str()).collect::<Vec<_>>().join(", ")
+        ),
+    })
 }

@@ -202,6 +202,10 @@ impl LensStream {
                     start = end;
                 }
             });
+            // Owned here, so that an early return drops the receiver before the scope joins:
+            // the decoder's next `send` then fails and it stops instead of blocking forever
+            // on a full channel.
+            let rx = rx;
             for i in 0..n {
                 let img = rx.recv().map_err(|_| BackendError::Vision {
                     context: "image decoding".into(),

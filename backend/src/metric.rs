@@ -6,7 +6,7 @@
 //! The estimate is the maximum-likelihood solution of one visual–inertial graph:
 //! - one node per (valid) frame with the metric state `x = (R, p, v, b_a, b_g)` =
 //!   `world_from_imu`, world velocity and biases, in a gravity-aligned world (`g = −9.81 ẑ`);
-//! - GTSAM's `CombinedImuFactor` between consecutive nodes ([`super::factors`]);
+//! - GTSAM's `CombinedImuFactor` between consecutive nodes ([`crate::fusion::factors`]);
 //! - three global unknowns: the scale `s` and the map's tilt `R_wm` (rotations about the
 //!   world x and y axes; the heading is the gauge and stays at its initial value); the map origin
 //!   is the world origin;
@@ -29,14 +29,14 @@ use kiwi_core::geometry::{Pose, hat, so3_right_jacobian_inv};
 use kiwi_core::imu::ImuSample;
 use nalgebra::{Cholesky, DMatrix, DVector, Matrix3, SMatrix, SVector, UnitQuaternion, Vector3};
 
-use super::chain::{
+use crate::error::{BackendError, Result};
+use crate::fusion::chain::{
     ImuNoiseModel, MAX_LAMBDA, MIN_DIAGONAL, accumulate_imu, cholesky_inverse, imu_cost,
     imu_information,
 };
-use super::factors::{NavNode, huber_loss, huber_weight, rotation_log, rotation_matrix};
-use super::fusion::preintegrate_nodes;
-use super::preint::{ImuBias, ImuParams, Matrix15, Preintegrated, Vector15};
-use crate::error::{BackendError, Result};
+use crate::fusion::factors::{NavNode, huber_loss, huber_weight, rotation_log, rotation_matrix};
+use crate::fusion::preint::{ImuBias, ImuParams, Matrix15, Preintegrated, Vector15};
+use crate::fusion::preintegrate_nodes;
 use crate::vision::align::Sim3;
 
 /// Number of global unknowns: scale, tilt about world x, tilt about world y.

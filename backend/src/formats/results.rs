@@ -1,22 +1,24 @@
-//! Drivers of `kiwi metric` and `kiwi place`: read localizer `poses.csv` files, the IMU log and
-//! the unit artifact, run [`super::metric`] / [`super::placement`], and write `metric.json` /
-//! `placement.json` atomically.
+//! `metric.json` and `placement.json`: the results of metric recovery ([`crate::metric`]) and
+//! scene placement ([`crate::placement`]) as files, and the typed steps that produce them from a
+//! lens's localizations (`poses.csv` rows), the IMU log and the unit calibration.
 //!
 //! `metric.json` holds `world_from_map` (the similarity that makes the map metric and z-up), the
 //! scale, gravity in the map, the biases and how well the recording determined them;
 //! `kiwi place` can read it to make either map metric before placing the front map in the scene.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use kiwi_core::geometry::Pose;
 use kiwi_core::imu::ImuSeries;
 use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 
-use super::files::{Localization, imu_params, load_lens_calibration, read_localizations};
-use super::metric::{Conditioning, MapFrame, MetricConfig, recover_metric};
-use super::placement::{PlacementConfig, PlacementPair, place};
+use super::calibration::LensImuCalibration;
+use super::tables::Localization;
 use crate::error::{BackendError, Result};
+use crate::fusion::preint::ImuParams;
+use crate::metric::{Conditioning, MapFrame, MetricConfig, recover_metric};
+use crate::placement::{PlacementConfig, PlacementPair, place};
 use crate::vision::align::Sim3;
 
 /// Schema of `metric.json` and `placement.json`.
@@ -44,7 +46,8 @@ pub struct SimilarityJson {
 }
 
 impl SimilarityJson {
-    fn from_sim3(s: &Sim3) -> Self {
+    /// From a similarity.
+    pub fn from_sim3(s: &Sim3) -> Self {
         let q = s.rotation.quaternion();
         Self {
             scale: s.scale,
@@ -53,7 +56,8 @@ impl SimilarityJson {
         }
     }
 
-    fn to_sim3(self, path: &Path) -> Result<Sim3> {
+    /// To a similarity; `path` names the file in the error when the values are invalid.
+    pub fn to_sim3(self, path: &Path) -> Result<Sim3> {
         let [x, y, z, w] = self.rotation_xyzw;
         let q = Quaternion::new(w, x, y, z);
         let finite = self.scale.is_finite()
@@ -108,8 +112,10 @@ pub struct MetricFile {
     pub rms_rotation_deg: f64,
     /// Solver iterations.
     pub iterations: usize,
-    /// Wall time (s).
-    pub seconds: f64,
+    /// Wall time (s); left out where files must be byte-identical across runs (the pipeline
+    /// keeps wall times in its stage manifests).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub seconds: Option<f64>,
 }
 
 /// [`Conditioning`] in JSON units.
@@ -136,42 +142,30 @@ impl From<Conditioning> for ConditioningJson {
     }
 }
 
-/// Inputs of `kiwi metric`.
-#[derive(Debug, Clone)]
-pub struct MetricOptions {
-    /// The localizer's `poses.csv` of the mapping episode against the map.
-    pub poses: PathBuf,
-    /// `imu.csv` of the same recording.
-    pub imu: PathBuf,
-    /// Unit `calibration.json`.
-    pub calibration: PathBuf,
-    /// Lens of the map.
-    pub lens: String,
-    /// IMU noise `[gn, gw, an, aw]` overriding the artifact's.
-    pub imu_noise: Option<[f64; 4]>,
-    /// Estimator settings.
-    pub config: MetricConfig,
-    /// Output `metric.json`.
-    pub out: PathBuf,
-}
-
 fn vec3(v: &Vector3<f64>) -> [f64; 3] {
     [v.x, v.y, v.z]
 }
 
-fn write_json<T: Serialize>(path: &Path, value: &T) -> Result<()> {
+/// Write a result as pretty JSON, atomically.
+pub fn write_json<T: Serialize>(path: &Path, value: &T) -> Result<()> {
     let text = serde_json::to_string_pretty(value)
         .map_err(|e| input(path, format!("cannot serialize: {e}")))?;
     kiwi_core::io::write_atomic(path, format!("{text}\n").as_bytes())?;
     Ok(())
 }
 
-/// Run `kiwi metric`.
-pub fn run_metric(opts: &MetricOptions) -> Result<MetricFile> {
-    let start = std::time::Instant::now();
-    let cal = load_lens_calibration(&opts.calibration, &opts.lens)?;
-    let params = imu_params(opts.imu_noise, Some((&opts.calibration, &cal)))?;
-    let rows = read_localizations(&opts.poses)?;
+/// Metric recovery of the map that `rows` (one lens's localizations of the mapping episode,
+/// `map_from_cam` on the camera clock) were localized in, from the raw `imu` of the same
+/// recording and the lens's calibration. `started` is when the caller began (for the timing).
+pub fn metric_from_localizations(
+    rows: &[Localization],
+    imu: &ImuSeries,
+    lens: &str,
+    calibration: &LensImuCalibration,
+    params: &ImuParams,
+    config: &MetricConfig,
+    started: std::time::Instant,
+) -> Result<MetricFile> {
     let frames: Vec<MapFrame> = rows
         .iter()
         .filter(|r| r.valid)
@@ -180,19 +174,17 @@ pub fn run_metric(opts: &MetricOptions) -> Result<MetricFile> {
             map_from_cam: r.map_from_cam,
         })
         .collect();
-    let imu = ImuSeries::read_csv(&opts.imu)?;
     let r = recover_metric(
         &frames,
         imu.samples(),
-        &params,
-        &cal.cam_from_imu,
-        cal.time_shift_s,
-        &opts.config,
-    )
-    .map_err(|e| input(&opts.poses, e.to_string()))?;
-    let file = MetricFile {
+        params,
+        &calibration.cam_from_imu,
+        calibration.time_shift_s,
+        config,
+    )?;
+    Ok(MetricFile {
         schema_version: SCHEMA_VERSION,
-        lens: opts.lens.clone(),
+        lens: lens.to_string(),
         world_from_map: SimilarityJson::from_sim3(&r.world_from_map),
         scale_m_per_map_unit: r.scale,
         gravity_in_map: vec3(&r.gravity_in_map),
@@ -206,13 +198,11 @@ pub fn run_metric(opts: &MetricOptions) -> Result<MetricFile> {
         rms_position_m: r.rms_position_m,
         rms_rotation_deg: r.rms_rotation_rad.to_degrees(),
         iterations: r.iterations,
-        seconds: start.elapsed().as_secs_f64(),
-    };
-    write_json(&opts.out, &file)?;
-    Ok(file)
+        seconds: Some(started.elapsed().as_secs_f64()),
+    })
 }
 
-/// Read a `metric.json` written by [`run_metric`].
+/// Read a `metric.json`.
 pub fn read_metric(path: &Path) -> Result<MetricFile> {
     let text = std::fs::read_to_string(path)
         .map_err(|e| input(path, format!("cannot read: {e}; check the path")))?;
@@ -236,30 +226,11 @@ pub fn read_metric(path: &Path) -> Result<MetricFile> {
 }
 
 /// Apply a map's similarity to a camera pose in it.
-fn apply(sim: &Sim3, map_from_cam: &Pose) -> Pose {
+pub fn apply(sim: &Sim3, map_from_cam: &Pose) -> Pose {
     Isometry3::from_parts(
         Translation3::from(sim.transform_point(&map_from_cam.translation.vector)),
         sim.rotation * map_from_cam.rotation,
     )
-}
-
-/// Inputs of `kiwi place`.
-#[derive(Debug, Clone)]
-pub struct PlaceOptions {
-    /// Front-lens `poses.csv` of the mapping episode in the front map.
-    pub front: PathBuf,
-    /// Rear-lens `poses.csv` of the same episode in the scene (rear) map.
-    pub rear: PathBuf,
-    /// Unit `calibration.json` (`cam_from_imu` and time shift of both lenses).
-    pub calibration: PathBuf,
-    /// `metric.json` of the front map (applied to the front poses first), if not yet metric.
-    pub front_metric: Option<PathBuf>,
-    /// `metric.json` of the scene map, if not yet metric.
-    pub rear_metric: Option<PathBuf>,
-    /// Robust-fit settings.
-    pub config: PlacementConfig,
-    /// Output `placement.json`.
-    pub out: PathBuf,
 }
 
 /// Contents of `placement.json`.
@@ -279,7 +250,8 @@ pub struct PlacementFile {
     pub rms_rotation_deg: f64,
 }
 
-fn metric_of(path: Option<&Path>) -> Result<Sim3> {
+/// The similarity of a `metric.json`, or the identity when there is none (the map is metric).
+pub fn metric_of(path: Option<&Path>) -> Result<Sim3> {
     match path {
         Some(p) => read_metric(p)?.world_from_map.to_sim3(p),
         None => Ok(Sim3::identity()),
@@ -322,35 +294,58 @@ fn pair_up(
     pairs
 }
 
-/// Run `kiwi place`.
-pub fn run_place(opts: &PlaceOptions) -> Result<PlacementFile> {
-    let front_cal = load_lens_calibration(&opts.calibration, "front")?;
-    let rear_cal = load_lens_calibration(&opts.calibration, "rear")?;
-    let rear_from_front = rear_cal.cam_from_imu * front_cal.cam_from_imu.inverse();
-    let front = read_localizations(&opts.front)?;
-    let rear = read_localizations(&opts.rear)?;
-    let front_sim = metric_of(opts.front_metric.as_deref())?;
-    let rear_sim = metric_of(opts.rear_metric.as_deref())?;
-    let pairs = pair_up(
-        &front,
-        &rear,
-        front_cal.time_shift_s,
-        rear_cal.time_shift_s,
-        &front_sim,
-        &rear_sim,
-    );
-    let p = place(&pairs, &rear_from_front, &opts.config).map_err(|e| {
+/// Read a `placement.json`.
+pub fn read_placement(path: &Path) -> Result<PlacementFile> {
+    let text = std::fs::read_to_string(path)
+        .map_err(|e| input(path, format!("cannot read: {e}; check the path")))?;
+    let file: PlacementFile = serde_json::from_str(&text).map_err(|e| {
         input(
-            &opts.front,
-            format!(
-                "{e} ({} synchronized pairs of valid front and rear localizations)",
-                pairs.len()
-            ),
+            path,
+            format!("not a kiwi placement.json: {e}; write it with `kiwi place`"),
         )
+    })?;
+    if file.schema_version != SCHEMA_VERSION {
+        return Err(input(
+            path,
+            format!(
+                "schema_version {} is not supported (expected {SCHEMA_VERSION}); re-run kiwi \
+                 place with this build",
+                file.schema_version
+            ),
+        ));
+    }
+    Ok(file)
+}
+
+/// Scene placement `G_a` of a front map (paper eq. 2) from the mapping episode's front and rear
+/// localizations of one unit, made metric by their maps' similarities.
+pub fn placement_from_localizations(
+    front: &[Localization],
+    rear: &[Localization],
+    front_calibration: &LensImuCalibration,
+    rear_calibration: &LensImuCalibration,
+    front_sim: &Sim3,
+    rear_sim: &Sim3,
+    config: &PlacementConfig,
+) -> Result<PlacementFile> {
+    let rear_from_front = rear_calibration.cam_from_imu * front_calibration.cam_from_imu.inverse();
+    let pairs = pair_up(
+        front,
+        rear,
+        front_calibration.time_shift_s,
+        rear_calibration.time_shift_s,
+        front_sim,
+        rear_sim,
+    );
+    let p = place(&pairs, &rear_from_front, config).map_err(|e| {
+        BackendError::Estimation(format!(
+            "{e} ({} synchronized pairs of valid front and rear localizations)",
+            pairs.len()
+        ))
     })?;
     let q = p.scene_from_front_map.rotation;
     let t = p.scene_from_front_map.translation.vector;
-    let file = PlacementFile {
+    Ok(PlacementFile {
         schema_version: SCHEMA_VERSION,
         scene_from_front_map: SimilarityJson::from_sim3(&Sim3 {
             scale: 1.0,
@@ -361,7 +356,5 @@ pub fn run_place(opts: &PlaceOptions) -> Result<PlacementFile> {
         inliers: p.inliers,
         rms_position_m: p.rms_position_m,
         rms_rotation_deg: p.rms_rotation_rad.to_degrees(),
-    };
-    write_json(&opts.out, &file)?;
-    Ok(file)
+    })
 }

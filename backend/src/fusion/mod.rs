@@ -1,4 +1,5 @@
-//! Per-wrist visual–inertial fusion (paper eq. 3–4): one node per front-camera frame with state
+//! Per-wrist visual–inertial fusion (paper eq. 4, `eq:state-objective`): one node per
+//! front-camera frame with state
 //! `scene_from_imu`, velocity and biases; IMU preintegration between consecutive nodes; robust
 //! unary pose factors from front and rear observations `Z = scene_from_cam · cam_from_imu`.
 //!
@@ -13,13 +14,17 @@
 //!   consecutive breakpoints (node times and sample times) uses the linearly interpolated
 //!   measurement at its midpoint.
 
+pub mod chain;
+pub mod factors;
+pub mod preint;
+
 use kiwi_core::geometry::{Pose, interpolate_pose, se3_adjoint};
 use kiwi_core::imu::ImuSample;
 use nalgebra::{Matrix6, Vector3};
 
-use super::chain::{ChainProblem, ImuNoiseModel, LmSettings, PoseFactor, pose_sigmas};
-use super::factors::NavNode;
-use super::preint::{ImuBias, ImuParams, Preintegrated};
+use self::chain::{ChainProblem, ImuNoiseModel, LmSettings, PoseFactor, pose_sigmas};
+use self::factors::NavNode;
+use self::preint::{ImuBias, ImuParams, Preintegrated};
 use crate::error::{BackendError, Result};
 
 /// Which camera an observation comes from.
@@ -139,6 +144,9 @@ pub struct Support {
     pub front: Option<f64>,
     /// Weight of the rear factor.
     pub rear: Option<f64>,
+    /// Whether the rear factor was interpolated between two rear observations of a tracked run
+    /// (rather than taken at the node's own time).
+    pub rear_interpolated: bool,
 }
 
 impl Support {
@@ -287,7 +295,7 @@ pub fn preintegrate_nodes(
             // scale by 0.1 %. Turning the sample by half the step's rotation evaluates it at the
             // step's midpoint instead (second order); `integrate` itself stays GTSAM's.
             let half_turn =
-                super::factors::rotation_matrix(&((gyro - bias_hat.gyro) * (0.5 * (next - cur))));
+                factors::rotation_matrix(&((gyro - bias_hat.gyro) * (0.5 * (next - cur))));
             let acc = half_turn * (acc - bias_hat.acc) + bias_hat.acc;
             pim.integrate(params, &acc, &gyro, next - cur);
             cur = next;
@@ -302,17 +310,22 @@ pub fn preintegrate_nodes(
 
 /// The observation of one source at node time `t`: exact match or interpolation inside a
 /// contiguous run.
-fn observation_at(obs: &[PoseObservation], t: f64, config: &FusionConfig) -> Option<Pose> {
+/// The observation of a source at node time `t`: one within the match tolerance, else one
+/// interpolated between its neighbours when they are close enough (`true` = interpolated).
+fn observation_at(obs: &[PoseObservation], t: f64, config: &FusionConfig) -> Option<(Pose, bool)> {
     let k = obs.partition_point(|o| o.t < t);
     let after = obs.get(k);
     let before = k.checked_sub(1).and_then(|i| obs.get(i));
     let close = |o: &&PoseObservation| (o.t - t).abs() <= config.match_tolerance_s;
     match (before, after) {
-        (_, Some(a)) if close(&a) => Some(a.scene_from_imu),
-        (Some(b), _) if close(&b) => Some(b.scene_from_imu),
+        (_, Some(a)) if close(&a) => Some((a.scene_from_imu, false)),
+        (Some(b), _) if close(&b) => Some((b.scene_from_imu, false)),
         (Some(b), Some(a)) if a.t - b.t <= config.max_interpolation_gap_s => {
             let s = (t - b.t) / (a.t - b.t);
-            Some(interpolate_pose(&b.scene_from_imu, &a.scene_from_imu, s))
+            Some((
+                interpolate_pose(&b.scene_from_imu, &a.scene_from_imu, s),
+                true,
+            ))
         }
         _ => None,
     }
@@ -376,6 +389,7 @@ pub fn fuse(
 
     // Visual factors per node, thinned per source.
     let mut factors = Vec::new();
+    let mut interpolated_rear = Vec::new();
     let mut last_kept = [f64::NEG_INFINITY; 2];
     let min_spacing = config
         .visual_rate_hz
@@ -388,7 +402,10 @@ pub fn fuse(
             if t - last_kept[s] < min_spacing - config.match_tolerance_s {
                 continue;
             }
-            if let Some(z) = observation_at(&per_source[s], t, config) {
+            if let Some((z, interpolated)) = observation_at(&per_source[s], t, config) {
+                if source == Source::Rear && interpolated {
+                    interpolated_rear.push(k);
+                }
                 let sigma = match source {
                     Source::Front => config.front_sigma,
                     Source::Rear => config.rear_sigma,
@@ -472,6 +489,9 @@ pub fn fuse(
     };
     let sol = problem.solve_lm(&config.lm);
     let mut support = vec![Support::default(); n];
+    for &k in &interpolated_rear {
+        support[k].rear_interpolated = true;
+    }
     let mut outliers = 0;
     for (f, &w) in problem.pose_factors.iter().zip(&sol.pose_weights) {
         if w < 1.0 {
@@ -507,6 +527,107 @@ pub fn fuse(
         initial_cost: sol.initial_cost,
         final_cost: sol.final_cost,
     })
+}
+
+/// How well the fused trajectory agrees with one source's observations.
+#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct SourceResiduals {
+    /// Nodes with an observation of this source.
+    pub observations: usize,
+    /// Of those, interpolated between two observations of a tracked run.
+    pub interpolated: usize,
+    /// Down-weighted by the Huber loss.
+    pub downweighted: usize,
+    /// Median position residual (m).
+    pub median_position_m: f64,
+    /// 95th-percentile position residual (m).
+    pub p95_position_m: f64,
+    /// Median rotation residual (rad).
+    pub median_rotation_rad: f64,
+    /// 95th-percentile rotation residual (rad).
+    pub p95_rotation_rad: f64,
+}
+
+/// Solver and residual statistics of a fusion run, for the quality record.
+#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct FusionStatistics {
+    /// Nodes (front frames).
+    pub nodes: usize,
+    /// Visual factors in the graph.
+    pub observations_used: usize,
+    /// Visual factors down-weighted by the Huber loss.
+    pub outliers_downweighted: usize,
+    /// Solver iterations.
+    pub iterations: usize,
+    /// Cost at the initial values.
+    pub initial_cost: f64,
+    /// Cost at the solution.
+    pub final_cost: f64,
+    /// Front-lens observations against the solution.
+    pub front: SourceResiduals,
+    /// Rear-lens observations against the solution.
+    pub rear: SourceResiduals,
+}
+
+fn percentile(sorted: &[f64], p: f64) -> f64 {
+    if sorted.is_empty() {
+        return 0.0;
+    }
+    let k = ((sorted.len() - 1) as f64 * p).round() as usize;
+    sorted[k.min(sorted.len() - 1)]
+}
+
+/// Residuals of each source's observations (taken at the node as the graph took them) against
+/// the fused poses.
+pub fn residual_statistics(
+    result: &FusionResult,
+    observations: &[PoseObservation],
+    config: &FusionConfig,
+) -> FusionStatistics {
+    let mut per_source: [Vec<PoseObservation>; 2] = [Vec::new(), Vec::new()];
+    for o in observations {
+        per_source[o.source.index()].push(*o);
+    }
+    for list in &mut per_source {
+        list.sort_by(|a, b| a.t.total_cmp(&b.t));
+    }
+    let mut stats = [SourceResiduals::default(); 2];
+    for source in [Source::Front, Source::Rear] {
+        let s = source.index();
+        let (mut pos, mut rot) = (Vec::new(), Vec::new());
+        for node in &result.nodes {
+            let weight = match source {
+                Source::Front => node.support.front,
+                Source::Rear => node.support.rear,
+            };
+            let Some(w) = weight else { continue };
+            let Some((z, interpolated)) = observation_at(&per_source[s], node.t, config) else {
+                continue;
+            };
+            let e = z.inverse() * node.scene_from_imu;
+            pos.push(e.translation.vector.norm());
+            rot.push(e.rotation.angle());
+            stats[s].observations += 1;
+            stats[s].interpolated += usize::from(interpolated);
+            stats[s].downweighted += usize::from(w < 1.0);
+        }
+        pos.sort_by(f64::total_cmp);
+        rot.sort_by(f64::total_cmp);
+        stats[s].median_position_m = percentile(&pos, 0.5);
+        stats[s].p95_position_m = percentile(&pos, 0.95);
+        stats[s].median_rotation_rad = percentile(&rot, 0.5);
+        stats[s].p95_rotation_rad = percentile(&rot, 0.95);
+    }
+    FusionStatistics {
+        nodes: result.nodes.len(),
+        observations_used: result.observations_used,
+        outliers_downweighted: result.outliers_downweighted,
+        iterations: result.iterations,
+        initial_cost: result.initial_cost,
+        final_cost: result.final_cost,
+        front: stats[0],
+        rear: stats[1],
+    }
 }
 
 #[cfg(test)]

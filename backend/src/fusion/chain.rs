@@ -58,7 +58,7 @@ pub fn imu_information(cov: &Matrix15, model: ImuNoiseModel) -> Matrix15 {
 }
 
 /// The whitened cost `½ Σ rᵀ Σ⁻¹ r` of the IMU factors between consecutive `nodes`.
-pub(super) fn imu_cost(
+pub(crate) fn imu_cost(
     imu: &[Preintegrated],
     imu_info: &[Matrix15],
     gravity: &Vector3<f64>,
@@ -75,7 +75,7 @@ pub(super) fn imu_cost(
 
 /// Add the IMU factor between nodes `k` and `k + 1` to the block-tridiagonal normal equations
 /// (`diag`, `off`) and return its gradient contributions to the two nodes.
-pub(super) fn accumulate_imu(
+pub(crate) fn accumulate_imu(
     pim: &Preintegrated,
     info: &Matrix15,
     gravity: &Vector3<f64>,
@@ -159,9 +159,9 @@ pub struct ChainSolution {
 }
 
 /// Damping floor relative to each diagonal entry (Marquardt scaling with a minimum).
-pub(super) const MIN_DIAGONAL: f64 = 1e-6;
+pub(crate) const MIN_DIAGONAL: f64 = 1e-6;
 /// Give up raising lambda past this (the step is then below numerical resolution).
-pub(super) const MAX_LAMBDA: f64 = 1e10;
+pub(crate) const MAX_LAMBDA: f64 = 1e10;
 
 /// Working storage of the block-tridiagonal system, allocated once per solve.
 struct System {
@@ -387,7 +387,7 @@ impl ChainProblem {
 }
 
 /// `(L Lᵀ)⁻¹` from a Cholesky factor `L` (zeros if `L` is singular).
-pub(super) fn cholesky_inverse(l: &Matrix15) -> Matrix15 {
+pub(crate) fn cholesky_inverse(l: &Matrix15) -> Matrix15 {
     let mut inv = Matrix15::identity();
     if l.solve_lower_triangular_mut(&mut inv) {
         inv.transpose() * inv

@@ -1,12 +1,19 @@
-//! `kiwi metric` and `kiwi place`: command-line front of `kiwi_backend::estimate::stages`.
+//! `kiwi metric` and `kiwi place`: metric recovery and scene placement from localizer
+//! `poses.csv` files, for experts who run the stages one by one.
 
 use std::path::PathBuf;
 
 use anyhow::Result;
 
-use kiwi_backend::estimate::metric::MetricConfig;
-use kiwi_backend::estimate::placement::PlacementConfig;
-use kiwi_backend::estimate::stages::{MetricOptions, PlaceOptions, run_metric, run_place};
+use anyhow::Context;
+use kiwi_backend::formats::calibration::{imu_params, load_lens_calibration};
+use kiwi_backend::formats::results::{
+    metric_from_localizations, metric_of, placement_from_localizations, write_json,
+};
+use kiwi_backend::formats::tables::read_localizations;
+use kiwi_backend::metric::MetricConfig;
+use kiwi_backend::placement::PlacementConfig;
+use kiwi_core::imu::ImuSeries;
 
 /// Arguments of `kiwi metric`.
 #[derive(Debug, clap::Args)]
@@ -102,15 +109,14 @@ pub fn run_metric_cmd(args: &MetricArgs) -> Result<()> {
         .as_deref()
         .map(|s| positive_numbers::<4>("--imu-noise", s, "four numbers GN,GW,AN,AW"))
         .transpose()?;
-    let file = run_metric(&MetricOptions {
-        poses: args.poses.clone(),
-        imu: args.imu.clone(),
-        calibration: args.calibration.clone(),
-        lens: args.lens.clone(),
-        imu_noise,
-        config,
-        out: args.out.clone(),
-    })?;
+    let started = std::time::Instant::now();
+    let cal = load_lens_calibration(&args.calibration, &args.lens)?;
+    let params = imu_params(imu_noise, Some((&args.calibration, &cal)))?;
+    let rows = read_localizations(&args.poses)?;
+    let imu = ImuSeries::read_csv(&args.imu)?;
+    let file = metric_from_localizations(&rows, &imu, &args.lens, &cal, &params, &config, started)
+        .with_context(|| format!("{}", args.poses.display()))?;
+    write_json(&args.out, &file)?;
     if args.json {
         println!("{}", serde_json::to_string(&file)?);
     } else {
@@ -136,15 +142,23 @@ pub fn run_metric_cmd(args: &MetricArgs) -> Result<()> {
 
 /// Run `kiwi place`.
 pub fn run_place_cmd(args: &PlaceArgs) -> Result<()> {
-    let file = run_place(&PlaceOptions {
-        front: args.front.clone(),
-        rear: args.rear.clone(),
-        calibration: args.calibration.clone(),
-        front_metric: args.front_metric.clone(),
-        rear_metric: args.rear_metric.clone(),
-        config: PlacementConfig::default(),
-        out: args.out.clone(),
-    })?;
+    let front_cal = load_lens_calibration(&args.calibration, "front")?;
+    let rear_cal = load_lens_calibration(&args.calibration, "rear")?;
+    let front = read_localizations(&args.front)?;
+    let rear = read_localizations(&args.rear)?;
+    let front_sim = metric_of(args.front_metric.as_deref())?;
+    let rear_sim = metric_of(args.rear_metric.as_deref())?;
+    let file = placement_from_localizations(
+        &front,
+        &rear,
+        &front_cal,
+        &rear_cal,
+        &front_sim,
+        &rear_sim,
+        &PlacementConfig::default(),
+    )
+    .with_context(|| format!("{}", args.front.display()))?;
+    write_json(&args.out, &file)?;
     if args.json {
         println!("{}", serde_json::to_string(&file)?);
     } else {

@@ -1,4 +1,4 @@
-//! File formats and the driver of `kiwi fuse`.
+//! The CSV tables the estimation commands exchange.
 //!
 //! - `frames.csv`: header whose first column is `t`; one node per row (camera clock, s).
 //! - `obs.csv`: header `t,source,px,py,pz,qx,qy,qz,qw`; `source` ∈ {front, rear}; the pose is
@@ -8,23 +8,18 @@
 //!   (without), marginal position/rotation sigmas (m, rad; square roots of the traces of the
 //!   3×3 marginal blocks) and the supporting factors ([`Support::label`]).
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
-use kiwi_core::artifact::UnitCalibration;
 use kiwi_core::geometry::Pose;
-use kiwi_core::imu::ImuSeries;
 use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
 
-use super::fusion::{FusionConfig, PoseObservation, Source, Support, fuse};
-use super::preint::ImuParams;
 use crate::error::{BackendError, Result};
+use crate::fusion::{PoseObservation, Source, Support};
 
 /// Header of `obs.csv`.
 pub const OBSERVATIONS_HEADER: &str = "t,source,px,py,pz,qx,qy,qz,qw";
 /// Header of `traj.csv`.
 pub const TRAJECTORY_HEADER: &str = "t,px,py,pz,qx,qy,qz,qw,sigma_p,sigma_r,support";
-/// Standard gravity used for fusion in a z-up scene (m/s²).
-pub const GRAVITY_M_S2: f64 = 9.81;
 /// Quaternions further than this from unit norm are rejected rather than normalised.
 const QUATERNION_NORM_TOLERANCE: f64 = 1e-3;
 
@@ -334,156 +329,189 @@ pub fn write_trajectory(path: &Path, rows: &[TrajectoryRow]) -> Result<()> {
     Ok(())
 }
 
-/// Inputs of `kiwi fuse`.
-#[derive(Debug, Clone)]
-pub struct FuseOptions {
-    /// `imu.csv`.
-    pub imu: PathBuf,
-    /// `frames.csv`.
-    pub frames: PathBuf,
-    /// `obs.csv`.
-    pub observations: PathBuf,
-    /// Unit `calibration.json` (IMU noise, `cam_from_imu`, time shift).
-    pub calibration: Option<PathBuf>,
-    /// Lens whose frames are the nodes.
-    pub lens: String,
-    /// IMU noise densities `[gn, gw, an, aw]` (required without a calibration).
-    pub imu_noise: Option<[f64; 4]>,
-    /// Fusion settings.
-    pub config: FusionConfig,
-    /// Output `traj.csv`.
-    pub out: PathBuf,
+/// Write `obs.csv` atomically (the format [`read_observations`] reads).
+pub fn write_observations(path: &Path, observations: &[PoseObservation]) -> Result<()> {
+    let mut s = String::with_capacity(observations.len() * 140 + 64);
+    s.push_str(OBSERVATIONS_HEADER);
+    s.push('\n');
+    for o in observations {
+        let p = o.scene_from_imu.translation.vector;
+        let q = o.scene_from_imu.rotation.coords;
+        let source = match o.source {
+            Source::Front => "front",
+            Source::Rear => "rear",
+        };
+        s.push_str(&format!(
+            "{:.9},{source},{:.9},{:.9},{:.9},{:.12},{:.12},{:.12},{:.12}\n",
+            o.t, p.x, p.y, p.z, q.x, q.y, q.z, q.w
+        ));
+    }
+    kiwi_core::io::write_atomic(path, s.as_bytes())?;
+    Ok(())
 }
 
-/// Summary printed by `kiwi fuse --json`.
-#[derive(Debug, Clone, serde::Serialize)]
-pub struct FuseSummary {
-    /// Nodes written.
-    pub nodes: usize,
-    /// Visual factors used.
-    pub observations_used: usize,
-    /// Visual factors downweighted by the Huber loss.
-    pub outliers_downweighted: usize,
-    /// Solver iterations.
-    pub iterations: usize,
-    /// Final cost.
-    pub final_cost: f64,
-    /// Wall time (s).
-    pub seconds: f64,
-}
+/// Header of `fused.csv`: per front frame, the frame's camera-clock time, its IMU-clock time,
+/// `scene_from_imu` (position, quaternion), velocity, biases, the 21 upper-triangle entries of
+/// the pose's marginal 6×6 covariance (`[rot; trans]`, row-major), the final Huber weights of
+/// the front and rear factors (empty when none) and whether the rear factor was interpolated.
+pub const FUSED_HEADER: &str = "t_camera,t_imu,px,py,pz,qx,qy,qz,qw,vx,vy,vz,bax,bay,baz,bgx,bgy,bgz,\
+cov00,cov01,cov02,cov03,cov04,cov05,cov11,cov12,cov13,cov14,cov15,cov22,cov23,cov24,cov25,\
+cov33,cov34,cov35,cov44,cov45,cov55,front_weight,rear_weight,rear_interpolated";
 
-/// What the estimators need of one lens of a unit artifact.
+/// One row of `fused.csv`.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct LensImuCalibration {
-    /// The lens's `cam_from_imu`.
-    pub cam_from_imu: Pose,
-    /// Kalibr time shift: `t_imu = t_cam + time_shift_s`.
-    pub time_shift_s: f64,
-    /// IMU noise densities `[gn, gw, an, aw]`, when the artifact has an `imu` block.
-    pub imu_noise: Option<[f64; 4]>,
+pub struct FusedRow {
+    /// Front frame time on the camera clock (s).
+    pub t_camera: f64,
+    /// The node: pose, velocity, biases, covariance, support.
+    pub node: crate::fusion::FusedNode,
 }
 
-/// Load `lens`'s camera–IMU calibration and the IMU noise from a unit `calibration.json`.
-pub fn load_lens_calibration(path: &Path, lens: &str) -> Result<LensImuCalibration> {
-    let cal = UnitCalibration::load(path)?;
-    let entry = cal.lens(lens).ok_or_else(|| {
-        let names: Vec<&str> = cal.lenses.iter().map(|l| l.name.as_str()).collect();
-        input(
-            path,
-            format!("no lens `{lens}`; the unit has {names:?}; pass --lens"),
-        )
-    })?;
-    let cam_from_imu = entry.cam_from_imu().ok_or_else(|| {
-        input(
-            path,
-            format!("lens `{lens}` has no cam_from_imu; run the camera-IMU calibration first"),
-        )
-    })?;
-    Ok(LensImuCalibration {
-        cam_from_imu,
-        time_shift_s: entry.time_shift_s.unwrap_or(0.0),
-        imu_noise: cal.imu.as_ref().map(|imu| {
-            [
-                imu.gyroscope_noise_density,
-                imu.gyroscope_random_walk,
-                imu.accelerometer_noise_density,
-                imu.accelerometer_random_walk,
-            ]
-        }),
-    })
+/// Write `fused.csv` atomically: one row per node, with the node's camera-clock frame time.
+pub fn write_fused(
+    path: &Path,
+    camera_times: &[f64],
+    nodes: &[crate::fusion::FusedNode],
+) -> Result<()> {
+    let mut s = String::with_capacity(nodes.len() * 520 + 512);
+    s.push_str(FUSED_HEADER);
+    s.push('\n');
+    for (n, t_cam) in nodes.iter().zip(camera_times) {
+        let p = n.scene_from_imu.translation.vector;
+        let q = n.scene_from_imu.rotation.coords;
+        let v = n.velocity;
+        let (ba, bg) = (n.bias.acc, n.bias.gyro);
+        s.push_str(&format!(
+            "{t_cam:.9},{:.9},{:.9},{:.9},{:.9},{:.12},{:.12},{:.12},{:.12},{:.6},{:.6},{:.6},\
+             {:.7},{:.7},{:.7},{:.8},{:.8},{:.8}",
+            n.t,
+            p.x,
+            p.y,
+            p.z,
+            q.x,
+            q.y,
+            q.z,
+            q.w,
+            v.x,
+            v.y,
+            v.z,
+            ba.x,
+            ba.y,
+            ba.z,
+            bg.x,
+            bg.y,
+            bg.z
+        ));
+        for i in 0..6 {
+            for j in i..6 {
+                s.push_str(&format!(",{:.6e}", n.pose_cov[(i, j)]));
+            }
+        }
+        let weight = |w: Option<f64>| w.map_or_else(String::new, |w| format!("{w:.4}"));
+        s.push_str(&format!(
+            ",{},{},{}\n",
+            weight(n.support.front),
+            weight(n.support.rear),
+            u8::from(n.support.rear_interpolated)
+        ));
+    }
+    kiwi_core::io::write_atomic(path, s.as_bytes())?;
+    Ok(())
 }
 
-/// IMU parameters from explicit densities, else the calibration's, else an error naming both.
-pub fn imu_params(
-    explicit: Option<[f64; 4]>,
-    calibration: Option<(&Path, &LensImuCalibration)>,
-) -> Result<ImuParams> {
-    let noise = match (explicit, calibration) {
-        (Some(n), _) => n,
-        (None, Some((path, cal))) => cal.imu_noise.ok_or_else(|| {
-            input(
+/// Read `fused.csv`.
+pub fn read_fused(path: &Path) -> Result<Vec<FusedRow>> {
+    let text = read(path)?;
+    let mut lines = text
+        .lines()
+        .enumerate()
+        .filter(|(_, l)| !l.trim().is_empty());
+    let header = lines.next().map(|(_, l)| l.trim()).unwrap_or_default();
+    if header != FUSED_HEADER {
+        return Err(input(
+            path,
+            "unexpected header: not a KIWI fused.csv of this version; re-run the fusion stage"
+                .into(),
+        ));
+    }
+    let columns = FUSED_HEADER.split(',').count();
+    let mut out = Vec::new();
+    for (i, line) in lines {
+        let row = i + 1;
+        let f: Vec<&str> = line.split(',').collect();
+        if f.len() != columns {
+            return Err(input(
                 path,
-                "no `imu` noise block; calibrate the IMU (kiwi-calib imu-noise) or pass \
-                 --imu-noise"
-                    .into(),
-            )
-        })?,
-        (None, None) => {
-            return Err(BackendError::Estimation(
-                "without --calibration, give the IMU noise as --imu-noise GN,GW,AN,AW".into(),
+                format!("line {row}: expected {columns} fields, found {}", f.len()),
             ));
         }
-    };
-    let [gn, gw, an, aw] = noise;
-    Ok(ImuParams::from_densities(gn, gw, an, aw, GRAVITY_M_S2))
-}
-
-/// Run `kiwi fuse`.
-pub fn run_fuse(opts: &FuseOptions) -> Result<FuseSummary> {
-    let start = std::time::Instant::now();
-    let lens_cal = opts
-        .calibration
-        .as_deref()
-        .map(|path| load_lens_calibration(path, &opts.lens).map(|c| (path, c)))
-        .transpose()?;
-    let time_shift = lens_cal.as_ref().map_or(0.0, |(_, c)| c.time_shift_s);
-    let cam_from_imu = lens_cal.as_ref().map(|(_, c)| c.cam_from_imu);
-    let params = imu_params(opts.imu_noise, lens_cal.as_ref().map(|(p, c)| (*p, c)))?;
-    let imu = ImuSeries::read_csv(&opts.imu)?;
-    let frames = read_frames(&opts.frames)?;
-    let observations = read_observations(&opts.observations)?;
-    // Kalibr convention: t_imu = t_cam + time_shift_s.
-    let node_times: Vec<f64> = frames.iter().map(|t| t + time_shift).collect();
-    let result = fuse(
-        imu.samples(),
-        &params,
-        &node_times,
-        &observations,
-        &opts.config,
-    )?;
-    let rows: Vec<TrajectoryRow> = result
-        .nodes
-        .iter()
-        .zip(&frames)
-        .map(|(n, &t)| {
-            let (pose, sigma_p, sigma_r) =
-                n.camera_pose(&cam_from_imu.unwrap_or_else(Pose::identity));
-            TrajectoryRow {
-                t,
-                pose,
-                sigma_p,
-                sigma_r,
-                support: n.support,
+        let num = |k: usize| -> Result<f64> {
+            f[k].trim()
+                .parse::<f64>()
+                .ok()
+                .filter(|v| v.is_finite())
+                .ok_or_else(|| {
+                    input(
+                        path,
+                        format!(
+                            "line {row}: column {} is not a finite number: `{}`",
+                            k + 1,
+                            f[k]
+                        ),
+                    )
+                })
+        };
+        let opt = |k: usize| -> Result<Option<f64>> {
+            if f[k].trim().is_empty() {
+                Ok(None)
+            } else {
+                num(k).map(Some)
             }
-        })
-        .collect();
-    write_trajectory(&opts.out, &rows)?;
-    Ok(FuseSummary {
-        nodes: rows.len(),
-        observations_used: result.observations_used,
-        outliers_downweighted: result.outliers_downweighted,
-        iterations: result.iterations,
-        final_cost: result.final_cost,
-        seconds: start.elapsed().as_secs_f64(),
-    })
+        };
+        let q = Quaternion::new(num(8)?, num(5)?, num(6)?, num(7)?);
+        if (q.norm() - 1.0).abs() > QUATERNION_NORM_TOLERANCE {
+            return Err(input(
+                path,
+                format!(
+                    "line {row}: quaternion has norm {:.6}, expected 1",
+                    q.norm()
+                ),
+            ));
+        }
+        let mut cov = nalgebra::Matrix6::zeros();
+        let mut k = 18;
+        for a in 0..6 {
+            for b in a..6 {
+                let v = num(k)?;
+                cov[(a, b)] = v;
+                cov[(b, a)] = v;
+                k += 1;
+            }
+        }
+        out.push(FusedRow {
+            t_camera: num(0)?,
+            node: crate::fusion::FusedNode {
+                t: num(1)?,
+                scene_from_imu: Isometry3::from_parts(
+                    Translation3::new(num(2)?, num(3)?, num(4)?),
+                    UnitQuaternion::from_quaternion(q),
+                ),
+                velocity: nalgebra::Vector3::new(num(9)?, num(10)?, num(11)?),
+                bias: crate::fusion::preint::ImuBias {
+                    acc: nalgebra::Vector3::new(num(12)?, num(13)?, num(14)?),
+                    gyro: nalgebra::Vector3::new(num(15)?, num(16)?, num(17)?),
+                },
+                pose_cov: cov,
+                support: Support {
+                    front: opt(39)?,
+                    rear: opt(40)?,
+                    rear_interpolated: f[41].trim() == "1",
+                },
+            },
+        });
+    }
+    if out.is_empty() {
+        return Err(input(path, "no rows after the header".into()));
+    }
+    Ok(out)
 }

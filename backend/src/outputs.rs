@@ -1,0 +1,507 @@
+//! An episode's deliverables (`episodes/<ep>/out/`): per wrist, the tool-tip and front-camera
+//! trajectories on the session timeline at every front frame with their marginal sigmas, the
+//! support class and the gripper opening; TUM files for trajectory tools such as evo; and
+//! `quality.json`, the record of how far to trust it all with the verdict.
+//!
+//! `<wrist>.csv` columns:
+//!
+//! | column | meaning |
+//! |---|---|
+//! | `t_session` | frame time on the session timeline (s); empty when the camera could not be synchronized |
+//! | `t_camera` | frame time on the camera's own clock (s) |
+//! | `tip_p{x,y,z}`, `tip_q{x,y,z,w}` | `scene_from_tip` (m, unit quaternion) |
+//! | `cam_p{x,y,z}`, `cam_q{x,y,z,w}` | `scene_from_front_cam` |
+//! | `tip_sigma_p_m`, `tip_sigma_r_rad`, `cam_sigma_p_m`, `cam_sigma_r_rad` | marginal sigmas (square roots of the traces of the 3×3 position and rotation blocks) |
+//! | `support` | `front`, `rear`, `rear-interpolated` or `imu-only` |
+//! | `factors` | the visual factors at the frame (`front+rear`, a `*` when Huber down-weighted one) |
+//! | `opening`, `opening_unit`, `opening_confidence` | gripper opening (rad for an angle, m for a width), empty when not measured |
+
+use std::collections::BTreeMap;
+use std::fmt::Write as _;
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+use kiwi_core::geometry::Pose;
+use kiwi_core::io::write_atomic;
+
+use crate::error::Result;
+use crate::formats::results::{MetricFile, PlacementFile};
+use crate::formats::tables::FusedRow;
+use crate::fusion::FusionStatistics;
+use crate::observations::ObservationCounts;
+use crate::quality::{
+    SUSPECT_GRIPPER_FRACTION, SUSPECT_PLACEMENT_INLIER_FRACTION, SUSPECT_POSITION_SIGMA_M,
+    SUSPECT_RESIDUAL_P95_M, SUSPECT_SUPPORTED_FRACTION, SUSPECT_UNSUPPORTED_RUN_S, Thresholds,
+    UNUSABLE_POSITION_SIGMA_M, UNUSABLE_SUPPORTED_FRACTION, UNUSABLE_UNSUPPORTED_RUN_S, Verdict,
+    VerdictBuilder, longest_unsupported_run,
+};
+use crate::sync::{CameraStatus, SyncResult};
+
+/// Schema of `quality.json`.
+pub const QUALITY_SCHEMA_VERSION: u32 = 1;
+/// Header of `<wrist>.csv`.
+pub const TRAJECTORY_HEADER: &str = "t_session,t_camera,tip_px,tip_py,tip_pz,tip_qx,tip_qy,tip_qz,tip_qw,\
+cam_px,cam_py,cam_pz,cam_qx,cam_qy,cam_qz,cam_qw,tip_sigma_p_m,tip_sigma_r_rad,cam_sigma_p_m,\
+cam_sigma_r_rad,support,factors,opening,opening_unit,opening_confidence";
+
+/// What supported a frame.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum SupportClass {
+    /// A front-lens observation at the frame.
+    Front,
+    /// A rear-lens observation at the frame (no front).
+    Rear,
+    /// A rear observation interpolated inside a tracked run (no front).
+    RearInterpolated,
+    /// No visual observation: the IMU carries the frame.
+    ImuOnly,
+}
+
+impl SupportClass {
+    /// Name in files.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Front => "front",
+            Self::Rear => "rear",
+            Self::RearInterpolated => "rear-interpolated",
+            Self::ImuOnly => "imu-only",
+        }
+    }
+
+    /// Whether the frame is supported in the paper's sense.
+    pub fn supported(self) -> bool {
+        self != Self::ImuOnly
+    }
+
+    /// The class of a fused node.
+    pub fn of(support: &crate::fusion::Support) -> Self {
+        match (support.front, support.rear, support.rear_interpolated) {
+            (Some(_), _, _) => Self::Front,
+            (None, Some(_), false) => Self::Rear,
+            (None, Some(_), true) => Self::RearInterpolated,
+            (None, None, _) => Self::ImuOnly,
+        }
+    }
+}
+
+/// One frame's gripper opening in SI units.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Opening {
+    /// Frame time on the camera clock (s).
+    pub t: f64,
+    /// The opening (rad or m), `None` when not measured.
+    pub value: Option<f64>,
+    /// Confidence in [0, 1].
+    pub confidence: f64,
+}
+
+/// A wrist's gripper openings.
+#[derive(Debug, Clone, PartialEq)]
+pub struct OpeningSeries {
+    /// `rad` (angle) or `m` (width).
+    pub unit: &'static str,
+    /// One per front frame.
+    pub rows: Vec<Opening>,
+}
+
+/// One lens's localization outcome, for the quality record.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct LocalizationRecord {
+    /// Frames in the stream.
+    pub frames: usize,
+    /// Frames with an accepted pose.
+    pub localized: usize,
+    /// Lost frames per reason (numbers replaced by `#`).
+    pub lost_reasons: BTreeMap<String, usize>,
+}
+
+/// Everything the outputs need of one wrist.
+#[derive(Debug, Clone)]
+pub struct WristInputs {
+    /// `left` or `right`.
+    pub camera: String,
+    /// Unit id and calibration date.
+    pub unit: String,
+    /// Calibration date.
+    pub calibration_date: String,
+    /// Whether the unit's calibration set is certified.
+    pub certified: bool,
+    /// The fused trajectory (one row per front frame).
+    pub fused: Vec<FusedRow>,
+    /// Front lens `cam_from_imu`.
+    pub front_cam_from_imu: Pose,
+    /// Tool `cam_from_tip`.
+    pub cam_from_tip: Pose,
+    /// Gripper openings, when the tool has jaws.
+    pub opening: Option<OpeningSeries>,
+    /// Front and rear localization outcomes.
+    pub front: LocalizationRecord,
+    /// Rear localization outcome.
+    pub rear: LocalizationRecord,
+    /// Observations made from them.
+    pub observations: ObservationCounts,
+    /// Fusion statistics.
+    pub fusion: FusionStatistics,
+    /// The wrist's front-map placement.
+    pub placement: PlacementFile,
+    /// Whether the tool was calibrated from its body tag (else CAD geometry).
+    pub tool_calibrated: Option<bool>,
+}
+
+/// Everything the outputs need of an episode.
+#[derive(Debug, Clone)]
+pub struct EpisodeInputs {
+    /// Episode name.
+    pub episode: String,
+    /// The map episode of the session.
+    pub map_episode: String,
+    /// Wrists in order.
+    pub wrists: Vec<WristInputs>,
+    /// The episode's sync result.
+    pub sync: SyncResult,
+    /// Metric recovery of each map (`rear`, `front-left`, …).
+    pub metric: BTreeMap<String, MetricFile>,
+}
+
+/// A wrist's section of `quality.json`.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct WristQuality {
+    /// Unit id.
+    pub unit: String,
+    /// Calibration date.
+    pub calibration_date: String,
+    /// Whether the calibration set is certified.
+    pub calibration_certified: bool,
+    /// Front frames (= fused nodes).
+    pub frames: usize,
+    /// Fraction of frames supported by a visual observation (paper §5).
+    pub supported_fraction: f64,
+    /// Fraction per support class.
+    pub support_fractions: BTreeMap<String, f64>,
+    /// Longest run of unsupported frames (s).
+    pub longest_unsupported_s: f64,
+    /// Largest tool-tip position sigma over the frames (m).
+    pub max_tip_sigma_p_m: f64,
+    /// Median tool-tip position sigma (m).
+    pub median_tip_sigma_p_m: f64,
+    /// Front-lens localization.
+    pub front_localization: LocalizationRecord,
+    /// Rear-lens localization.
+    pub rear_localization: LocalizationRecord,
+    /// Observations made (eq. 3).
+    pub observations: ObservationCounts,
+    /// Fusion solver and residuals.
+    pub fusion: FusionStatistics,
+    /// Placement of the front map: pairs, inliers, RMS.
+    pub placement: PlacementFile,
+    /// The clock on the session timeline.
+    pub clock: Option<crate::sync::CameraClock>,
+    /// Fraction of frames with a gripper opening, and its median confidence.
+    pub gripper_measured_fraction: Option<f64>,
+    /// Whether the tool's dot plane came from its body tag (else from CAD).
+    pub tool_calibrated: Option<bool>,
+}
+
+/// `quality.json`.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct QualityRecord {
+    /// [`QUALITY_SCHEMA_VERSION`].
+    pub schema_version: u32,
+    /// Episode.
+    pub episode: String,
+    /// `usable`, `suspect` or `unusable`.
+    pub verdict: Verdict,
+    /// Every finding behind the verdict.
+    pub reasons: Vec<String>,
+    /// The thresholds used.
+    pub thresholds: Thresholds,
+    /// Per wrist.
+    pub wrists: BTreeMap<String, WristQuality>,
+    /// Sync evidence: cameras, pairs, triangle closures (absent when sync did not run).
+    pub sync: Option<SyncResult>,
+    /// Metric recovery of the session's maps (scale, gravity, conditioning).
+    pub metric: BTreeMap<String, MetricFile>,
+    /// The episode whose recordings built the maps.
+    pub map_episode: String,
+}
+
+fn session_time(clock: Option<&crate::sync::CameraClock>, t: f64) -> Option<f64> {
+    clock
+        .filter(|c| c.status != CameraStatus::Unmatched)
+        .map(|c| t * (1.0 + c.drift_ppm * 1e-6) + c.offset_s)
+}
+
+fn pose_fields(s: &mut String, pose: &Pose) {
+    let p = pose.translation.vector;
+    let q = pose.rotation.coords;
+    let _ = write!(
+        s,
+        "{:.6},{:.6},{:.6},{:.9},{:.9},{:.9},{:.9}",
+        p.x, p.y, p.z, q.x, q.y, q.z, q.w
+    );
+}
+
+fn tum_line(s: &mut String, t: f64, pose: &Pose) {
+    let p = pose.translation.vector;
+    let q = pose.rotation.coords;
+    let _ = writeln!(
+        s,
+        "{t:.6} {:.6} {:.6} {:.6} {:.9} {:.9} {:.9} {:.9}",
+        p.x, p.y, p.z, q.x, q.y, q.z, q.w
+    );
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    if v.is_empty() {
+        return 0.0;
+    }
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+/// Write one wrist's CSV and TUM files into `dir`, and return its quality section.
+fn write_wrist(
+    w: &WristInputs,
+    clock: Option<&crate::sync::CameraClock>,
+    dir: &Path,
+) -> Result<WristQuality> {
+    let n = w.fused.len();
+    let mut csv = String::with_capacity(n * 400 + 512);
+    csv.push_str(TRAJECTORY_HEADER);
+    csv.push('\n');
+    let mut tip_tum = String::with_capacity(n * 110);
+    let mut cam_tum = String::with_capacity(n * 110);
+    let tip_from_imu = w.cam_from_tip.inverse() * w.front_cam_from_imu;
+    let mut classes = Vec::with_capacity(n);
+    let mut sigmas = Vec::with_capacity(n);
+    let openings: BTreeMap<u64, &Opening> = w
+        .opening
+        .iter()
+        .flat_map(|o| o.rows.iter())
+        .map(|o| (o.t.to_bits(), o))
+        .collect();
+    let mut measured = 0usize;
+    for row in &w.fused {
+        let (cam_pose, cam_sp, cam_sr) = row.node.camera_pose(&w.front_cam_from_imu);
+        let (tip_pose, tip_sp, tip_sr) = row.node.camera_pose(&tip_from_imu);
+        let class = SupportClass::of(&row.node.support);
+        classes.push(class);
+        sigmas.push(tip_sp);
+        let t_session = session_time(clock, row.t_camera);
+        let t_out = t_session.unwrap_or(row.t_camera);
+        match t_session {
+            Some(t) => {
+                let _ = write!(csv, "{t:.6},");
+            }
+            None => csv.push(','),
+        }
+        let _ = write!(csv, "{:.6},", row.t_camera);
+        pose_fields(&mut csv, &tip_pose);
+        csv.push(',');
+        pose_fields(&mut csv, &cam_pose);
+        let _ = write!(
+            csv,
+            ",{tip_sp:.3e},{tip_sr:.3e},{cam_sp:.3e},{cam_sr:.3e},{},{}",
+            class.as_str(),
+            row.node.support.label()
+        );
+        let opening = w.opening.as_ref().and_then(|series| {
+            openings
+                .get(&row.t_camera.to_bits())
+                .map(|o| (series.unit, o))
+        });
+        match opening {
+            Some((unit, o)) => {
+                let value = o.value.map(|v| format!("{v:.6}")).unwrap_or_default();
+                measured += usize::from(o.value.is_some());
+                let _ = writeln!(csv, ",{value},{unit},{:.3}", o.confidence);
+            }
+            None => csv.push_str(",,,\n"),
+        }
+        tum_line(&mut tip_tum, t_out, &tip_pose);
+        tum_line(&mut cam_tum, t_out, &cam_pose);
+    }
+    let name = &w.camera;
+    write_atomic(&dir.join(format!("{name}.csv")), csv.as_bytes())?;
+    write_atomic(&dir.join(format!("{name}_tip.tum")), tip_tum.as_bytes())?;
+    write_atomic(
+        &dir.join(format!("{name}_front_cam.tum")),
+        cam_tum.as_bytes(),
+    )?;
+
+    let times: Vec<f64> = w.fused.iter().map(|r| r.t_camera).collect();
+    let supported: Vec<bool> = classes.iter().map(|c| c.supported()).collect();
+    let frac = |pred: &dyn Fn(&SupportClass) -> bool| {
+        classes.iter().filter(|c| pred(c)).count() as f64 / n.max(1) as f64
+    };
+    let mut support_fractions = BTreeMap::new();
+    for c in [
+        SupportClass::Front,
+        SupportClass::Rear,
+        SupportClass::RearInterpolated,
+        SupportClass::ImuOnly,
+    ] {
+        support_fractions.insert(c.as_str().to_string(), frac(&|x| *x == c));
+    }
+    Ok(WristQuality {
+        unit: w.unit.clone(),
+        calibration_date: w.calibration_date.clone(),
+        calibration_certified: w.certified,
+        frames: n,
+        supported_fraction: frac(&|c| c.supported()),
+        support_fractions,
+        longest_unsupported_s: longest_unsupported_run(&times, &supported),
+        max_tip_sigma_p_m: sigmas.iter().copied().fold(0.0, f64::max),
+        median_tip_sigma_p_m: median(sigmas),
+        front_localization: w.front.clone(),
+        rear_localization: w.rear.clone(),
+        observations: w.observations,
+        fusion: w.fusion,
+        placement: w.placement.clone(),
+        clock: clock.cloned(),
+        gripper_measured_fraction: w
+            .opening
+            .as_ref()
+            .map(|_| measured as f64 / n.max(1) as f64),
+        tool_calibrated: w.tool_calibrated,
+    })
+}
+
+/// Grade one wrist.
+fn grade_wrist(v: &mut VerdictBuilder, name: &str, q: &WristQuality) {
+    v.check_at_least(
+        &format!("{name}: supported fraction"),
+        q.supported_fraction,
+        SUSPECT_SUPPORTED_FRACTION,
+        UNUSABLE_SUPPORTED_FRACTION,
+    );
+    v.check_at_most(
+        &format!("{name}: longest IMU-only run (s)"),
+        q.longest_unsupported_s,
+        SUSPECT_UNSUPPORTED_RUN_S,
+        UNUSABLE_UNSUPPORTED_RUN_S,
+    );
+    v.check_at_most(
+        &format!("{name}: largest tool-tip position sigma (m)"),
+        q.max_tip_sigma_p_m,
+        SUSPECT_POSITION_SIGMA_M,
+        UNUSABLE_POSITION_SIGMA_M,
+    );
+    for (source, r) in [("front", &q.fusion.front), ("rear", &q.fusion.rear)] {
+        if r.observations > 0 && r.p95_position_m > SUSPECT_RESIDUAL_P95_M {
+            v.add(
+                Verdict::Suspect,
+                format!(
+                    "{name}: {source} observations disagree with the fused trajectory \
+                     (95th percentile {:.1} mm > {:.0} mm): check the maps and the calibration",
+                    r.p95_position_m * 1e3,
+                    SUSPECT_RESIDUAL_P95_M * 1e3
+                ),
+            );
+        }
+    }
+    let p = &q.placement;
+    let inliers = p.inliers as f64 / p.pairs.max(1) as f64;
+    if inliers < SUSPECT_PLACEMENT_INLIER_FRACTION {
+        v.add(
+            Verdict::Suspect,
+            format!(
+                "{name}: the front map's placement rests on {} of {} pairs",
+                p.inliers, p.pairs
+            ),
+        );
+    }
+    if !q.calibration_certified {
+        v.add(
+            Verdict::Suspect,
+            format!(
+                "{name}: unit {} has no passed certification in its calibration set ({})",
+                q.unit, q.calibration_date
+            ),
+        );
+    }
+    match &q.clock {
+        Some(c) if c.status == CameraStatus::Unmatched => v.add(
+            Verdict::Unusable,
+            format!(
+                "{name}: the camera could not be placed on the session timeline (its audio \
+                 shares no accepted sound with the other cameras; see sync.pairs)"
+            ),
+        ),
+        None => v.add(
+            Verdict::Unusable,
+            format!("{name}: the camera is missing from the sync result"),
+        ),
+        Some(_) => {}
+    }
+    if let Some(f) = q.gripper_measured_fraction
+        && f < SUSPECT_GRIPPER_FRACTION
+    {
+        v.add(
+            Verdict::Suspect,
+            format!(
+                "{name}: gripper opening measured on {:.1} % of frames (< {:.0} %)",
+                f * 100.0,
+                SUSPECT_GRIPPER_FRACTION * 100.0
+            ),
+        );
+    }
+}
+
+/// Write every deliverable of an episode into `dir` and return the quality record (also
+/// written there as `quality.json`).
+pub fn write_outputs(inputs: &EpisodeInputs, dir: &Path) -> Result<QualityRecord> {
+    std::fs::create_dir_all(dir).map_err(|e| crate::error::BackendError::Input {
+        path: dir.to_path_buf(),
+        message: format!("cannot create: {e}"),
+    })?;
+    let mut wrists = BTreeMap::new();
+    let mut v = VerdictBuilder::default();
+    for w in &inputs.wrists {
+        let clock = inputs.sync.cameras.iter().find(|c| c.name == w.camera);
+        let q = write_wrist(w, clock, dir)?;
+        grade_wrist(&mut v, &w.camera, &q);
+        wrists.insert(w.camera.clone(), q);
+    }
+    let (verdict, reasons) = v.finish();
+    let record = QualityRecord {
+        schema_version: QUALITY_SCHEMA_VERSION,
+        episode: inputs.episode.clone(),
+        verdict,
+        reasons,
+        thresholds: Thresholds::default(),
+        wrists,
+        sync: Some(inputs.sync.clone()),
+        metric: inputs.metric.clone(),
+        map_episode: inputs.map_episode.clone(),
+    };
+    crate::formats::results::write_json(&dir.join("quality.json"), &record)?;
+    Ok(record)
+}
+
+/// Read an episode's `quality.json`.
+pub fn read_quality(path: &Path) -> Result<QualityRecord> {
+    let text = kiwi_core::io::read_text(path)?;
+    serde_json::from_str(&text).map_err(|e| crate::error::BackendError::Input {
+        path: path.to_path_buf(),
+        message: format!("not a KIWI quality.json: {e}; re-run `kiwi run`"),
+    })
+}
+
+/// The quality record of an episode whose stages failed: verdict `unusable`, the reasons, and
+/// nothing else (no trajectory is written for it).
+pub fn failed_record(episode: &str, map_episode: &str, reasons: Vec<String>) -> QualityRecord {
+    QualityRecord {
+        schema_version: QUALITY_SCHEMA_VERSION,
+        episode: episode.to_string(),
+        verdict: Verdict::Unusable,
+        reasons,
+        thresholds: Thresholds::default(),
+        wrists: BTreeMap::new(),
+        sync: None,
+        metric: BTreeMap::new(),
+        map_episode: map_episode.to_string(),
+    }
+}

@@ -1,0 +1,364 @@
+//! The stage graph of a session (paper §4, `fig:pipeline`).
+//!
+//! Per session, on the session's `map_episode` (after that episode's `sync`):
+//! `map-rear` (the shared scene map, from one wrist's rear stream) and `map-front-<wrist>`,
+//! `tool-<wrist>` (the tool's dot plane from its body tag), then — from that episode's own
+//! localizations — `metric-rear` / `metric-front-<wrist>` (scale, gravity, biases) and
+//! `placement-<wrist>` (`G_a`, eq. 2).
+//!
+//! Per episode, once the maps are frozen: `sync` → `localize-<wrist>-<lens>` (four streams, no map
+//! updates) → `observations-<wrist>` (eq. 3) → `fusion-<wrist>` (eq. 4) → `gripper-<wrist>` →
+//! `outputs` (tool tip on the session timeline, TUM files, `quality.json`).
+//!
+//! Stages for head pose, the floor reference, dataset exports and the report attach after
+//! `fusion-<wrist>` / `outputs` in [`build`] (each with its own family name), in the same way.
+
+use kiwi_core::layout::Side;
+
+use super::context::SessionContext;
+use super::stage::StageId;
+
+/// A lens of a wrist unit.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum Lens {
+    /// Faces the tool.
+    Front,
+    /// Faces the room.
+    Rear,
+}
+
+impl Lens {
+    /// `front` or `rear`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Front => "front",
+            Self::Rear => "rear",
+        }
+    }
+}
+
+/// Which map: the shared rear (scene) map or a wrist's front map.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum MapName {
+    /// The shared rear map, built from the map wrist's rear stream.
+    Rear,
+    /// A wrist's front map.
+    Front(Side),
+}
+
+impl MapName {
+    /// `rear` or `front-left`.
+    pub fn label(self) -> String {
+        match self {
+            Self::Rear => "rear".into(),
+            Self::Front(side) => format!("front-{}", side.camera_name()),
+        }
+    }
+
+    /// The map a lens of a wrist is localized in.
+    pub fn for_lens(side: Side, lens: Lens) -> Self {
+        match lens {
+            Lens::Front => Self::Front(side),
+            Lens::Rear => Self::Rear,
+        }
+    }
+}
+
+/// What a stage does, with what it does it on.
+#[derive(Debug, Clone, PartialEq, Eq, Hash)]
+pub enum StageKind {
+    /// Audio time sync of an episode's cameras (§4.1).
+    Sync {
+        /// Episode.
+        episode: String,
+    },
+    /// Build a map from the map episode (§4.2).
+    Map {
+        /// Which map.
+        map: MapName,
+    },
+    /// Calibrate a wrist's tool (dot plane from the body tag) on the map episode (§4.3.1).
+    Tool {
+        /// Wrist.
+        side: Side,
+    },
+    /// Localize one lens stream of an episode in its frozen map.
+    Localize {
+        /// Episode.
+        episode: String,
+        /// Wrist.
+        side: Side,
+        /// Lens.
+        lens: Lens,
+    },
+    /// Metric recovery of a map from the map episode's localizations and IMU.
+    Metric {
+        /// Which map.
+        map: MapName,
+    },
+    /// Scene placement `G_a` of a wrist's front map (eq. 2).
+    Placement {
+        /// Wrist.
+        side: Side,
+    },
+    /// Body observations of a wrist in an episode (eq. 3).
+    Observations {
+        /// Episode.
+        episode: String,
+        /// Wrist.
+        side: Side,
+    },
+    /// Per-wrist visual–inertial fusion (eq. 4).
+    Fusion {
+        /// Episode.
+        episode: String,
+        /// Wrist.
+        side: Side,
+    },
+    /// Gripper opening per front frame (§4.3.1).
+    Gripper {
+        /// Episode.
+        episode: String,
+        /// Wrist.
+        side: Side,
+    },
+    /// The episode's deliverables: tool-tip trajectories, TUM files, `quality.json`.
+    Outputs {
+        /// Episode.
+        episode: String,
+    },
+}
+
+/// One node of the graph.
+#[derive(Debug, Clone)]
+pub struct StageNode {
+    /// Its identity and folder.
+    pub id: StageId,
+    /// What it does.
+    pub kind: StageKind,
+    /// Stages whose outputs it reads.
+    pub deps: Vec<StageId>,
+}
+
+/// The id of a stage kind.
+pub fn id_of(kind: &StageKind) -> StageId {
+    match kind {
+        StageKind::Sync { episode } => StageId::episode(episode, "sync"),
+        StageKind::Map { map } => StageId::session(format!("map-{}", map.label())),
+        StageKind::Tool { side } => StageId::session(format!("tool-{}", side.camera_name())),
+        StageKind::Localize {
+            episode,
+            side,
+            lens,
+        } => StageId::episode(
+            episode,
+            format!("localize-{}-{}", side.camera_name(), lens.name()),
+        ),
+        StageKind::Metric { map } => StageId::session(format!("metric-{}", map.label())),
+        StageKind::Placement { side } => {
+            StageId::session(format!("placement-{}", side.camera_name()))
+        }
+        StageKind::Observations { episode, side } => {
+            StageId::episode(episode, format!("observations-{}", side.camera_name()))
+        }
+        StageKind::Fusion { episode, side } => {
+            StageId::episode(episode, format!("fusion-{}", side.camera_name()))
+        }
+        StageKind::Gripper { episode, side } => {
+            StageId::episode(episode, format!("gripper-{}", side.camera_name()))
+        }
+        StageKind::Outputs { episode } => StageId::episode(episode, "outputs"),
+    }
+}
+
+/// Stage families a user can name in `--from`, `--force` and `kiwi status`.
+pub const FAMILIES: [&str; 10] = [
+    "sync",
+    "map",
+    "tool",
+    "localize",
+    "metric",
+    "placement",
+    "observations",
+    "fusion",
+    "gripper",
+    "outputs",
+];
+
+/// The graph for `episodes` (the session's stages and the map episode's localizations are
+/// always included: every episode needs them), in an order where every stage follows its
+/// dependencies.
+pub fn build(ctx: &SessionContext, episodes: &[String]) -> Vec<StageNode> {
+    let mut nodes: Vec<StageNode> = Vec::new();
+    let mut push = |kind: StageKind, deps: Vec<StageId>| {
+        let id = id_of(&kind);
+        if !nodes.iter().any(|n| n.id == id) {
+            nodes.push(StageNode { id, kind, deps });
+        }
+    };
+    let map_ep = ctx.session.map_episode.clone();
+    let sides: Vec<Side> = ctx.wrists.keys().copied().collect();
+    let map_side = ctx.map_side();
+    let mut maps = vec![MapName::Rear];
+    maps.extend(sides.iter().map(|&s| MapName::Front(s)));
+
+    // Session: maps and tools from the map episode.
+    for &map in &maps {
+        push(StageKind::Map { map }, Vec::new());
+    }
+    for &side in &sides {
+        if ctx.wrists.get(&side).is_some_and(|w| w.tool.is_some()) {
+            push(StageKind::Tool { side }, Vec::new());
+        }
+    }
+    // The map episode's localizations feed metric recovery and placement.
+    let localize = |episode: &str, side: Side, lens: Lens| StageKind::Localize {
+        episode: episode.to_string(),
+        side,
+        lens,
+    };
+    for &side in &sides {
+        for lens in [Lens::Front, Lens::Rear] {
+            let kind = localize(&map_ep, side, lens);
+            let dep = id_of(&StageKind::Map {
+                map: MapName::for_lens(side, lens),
+            });
+            push(kind, vec![dep]);
+        }
+    }
+    for &map in &maps {
+        let (side, lens) = match map {
+            MapName::Rear => (map_side, Lens::Rear),
+            MapName::Front(s) => (s, Lens::Front),
+        };
+        push(
+            StageKind::Metric { map },
+            vec![id_of(&localize(&map_ep, side, lens))],
+        );
+    }
+    for &side in &sides {
+        push(
+            StageKind::Placement { side },
+            vec![
+                id_of(&localize(&map_ep, side, Lens::Front)),
+                id_of(&localize(&map_ep, side, Lens::Rear)),
+                id_of(&StageKind::Metric {
+                    map: MapName::Front(side),
+                }),
+                id_of(&StageKind::Metric { map: MapName::Rear }),
+            ],
+        );
+    }
+
+    // Episodes.
+    for episode in episodes {
+        push(
+            StageKind::Sync {
+                episode: episode.clone(),
+            },
+            Vec::new(),
+        );
+        for &side in &sides {
+            for lens in [Lens::Front, Lens::Rear] {
+                let dep = id_of(&StageKind::Map {
+                    map: MapName::for_lens(side, lens),
+                });
+                push(localize(episode, side, lens), vec![dep]);
+            }
+            push(
+                StageKind::Observations {
+                    episode: episode.clone(),
+                    side,
+                },
+                vec![
+                    id_of(&localize(episode, side, Lens::Front)),
+                    id_of(&localize(episode, side, Lens::Rear)),
+                    id_of(&StageKind::Metric {
+                        map: MapName::Front(side),
+                    }),
+                    id_of(&StageKind::Metric { map: MapName::Rear }),
+                    id_of(&StageKind::Placement { side }),
+                ],
+            );
+            push(
+                StageKind::Fusion {
+                    episode: episode.clone(),
+                    side,
+                },
+                vec![id_of(&StageKind::Observations {
+                    episode: episode.clone(),
+                    side,
+                })],
+            );
+            if ctx.wrists.get(&side).is_some_and(|w| w.tool.is_some()) {
+                push(
+                    StageKind::Gripper {
+                        episode: episode.clone(),
+                        side,
+                    },
+                    vec![id_of(&StageKind::Tool { side })],
+                );
+            }
+        }
+        let mut deps = vec![id_of(&StageKind::Sync {
+            episode: episode.clone(),
+        })];
+        for &side in &sides {
+            deps.push(id_of(&StageKind::Fusion {
+                episode: episode.clone(),
+                side,
+            }));
+            deps.push(id_of(&localize(episode, side, Lens::Front)));
+            deps.push(id_of(&localize(episode, side, Lens::Rear)));
+            deps.push(id_of(&StageKind::Observations {
+                episode: episode.clone(),
+                side,
+            }));
+            if ctx.wrists.get(&side).is_some_and(|w| w.tool.is_some()) {
+                deps.push(id_of(&StageKind::Gripper {
+                    episode: episode.clone(),
+                    side,
+                }));
+            }
+        }
+        for &map in &maps {
+            deps.push(id_of(&StageKind::Metric { map }));
+        }
+        for &side in &sides {
+            deps.push(id_of(&StageKind::Placement { side }));
+        }
+        push(
+            StageKind::Outputs {
+                episode: episode.clone(),
+            },
+            deps,
+        );
+    }
+    order(nodes)
+}
+
+/// Topological order (stable: among ready stages, the order they were added).
+fn order(nodes: Vec<StageNode>) -> Vec<StageNode> {
+    let mut done: Vec<StageId> = Vec::new();
+    let mut pending = nodes;
+    let mut out = Vec::with_capacity(pending.len());
+    while !pending.is_empty() {
+        let before = pending.len();
+        let mut rest = Vec::new();
+        for n in pending {
+            if n.deps.iter().all(|d| done.contains(d)) {
+                done.push(n.id.clone());
+                out.push(n);
+            } else {
+                rest.push(n);
+            }
+        }
+        if rest.len() == before {
+            // Unreachable with the builder above; keep the remaining stages rather than loop.
+            out.extend(rest);
+            break;
+        }
+        pending = rest;
+    }
+    out
+}

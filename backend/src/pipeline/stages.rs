@@ -1,0 +1,893 @@
+//! What each stage reads, its version and parameters, and its body: read the typed outputs of
+//! the stages before it, call the stage's module (`sync`, `vision`, `metric`, `placement`,
+//! `observations`, `fusion`, `gripper`, `outputs`), write its outputs into the stage's folder.
+//!
+//! Outputs are deterministic (no wall times, no dates): the same inputs give byte-identical
+//! files whatever the thread count, so an interrupted and resumed run ends exactly where an
+//! uninterrupted one does. Wall times go to the manifests.
+
+use std::path::{Path, PathBuf};
+
+use kiwi_core::imu::ImuSeries;
+use kiwi_core::io::{sha256_bytes, sha256_file, write_atomic};
+use kiwi_core::layout::{EpisodeLayout, Side};
+use kiwi_core::tool::ToolCalibration;
+
+use super::context::{SessionContext, WristContext};
+use super::graph::{Lens, MapName, StageKind, id_of};
+use super::stage::{InputDigest, Manifest, StageId};
+use crate::error::{BackendError, Result};
+use crate::formats::results::{
+    MetricFile, PlacementFile, metric_from_localizations, placement_from_localizations,
+    read_metric, read_placement, write_json,
+};
+use crate::formats::tables::{
+    read_fused, read_localizations, read_observations, write_fused, write_observations,
+};
+use crate::fusion::{FusionConfig, fuse};
+use crate::metric::MetricConfig;
+use crate::observations::{SceneReference, body_observations};
+use crate::placement::PlacementConfig;
+use crate::vision::episode::{LensStream, build_map_with, localize_stream, write_poses_csv};
+use crate::vision::localize::LocalizerOptions;
+use crate::vision::map::VisualMap;
+
+/// Called by a stage as it progresses: `(done, total)` in the stage's own units (frames).
+pub type ProgressFn<'a> = &'a (dyn Fn(usize, usize) + Sync);
+
+/// The map file inside a map stage's folder.
+pub const MAP_FILE: &str = "map.kmap";
+/// The localizations inside a localize stage's folder (the `kiwi localize` format).
+pub const POSES_FILE: &str = "poses.csv";
+/// The observations inside an observations stage's folder (the `kiwi fuse` format).
+pub const OBSERVATIONS_FILE: &str = "obs.csv";
+/// The fused trajectory inside a fusion stage's folder.
+pub const FUSED_FILE: &str = "fused.csv";
+/// The sync result inside the sync stage's folder.
+pub const SYNC_FILE: &str = "sync.json";
+/// The tool calibration (or why there is none) inside a tool stage's folder.
+pub const TOOL_FILE: &str = "tool.json";
+/// A stage's deterministic summary.
+pub const SUMMARY_FILE: &str = "summary.json";
+
+fn input(path: &Path, message: String) -> BackendError {
+    BackendError::Input {
+        path: path.to_path_buf(),
+        message,
+    }
+}
+
+/// The version of a stage's algorithm and output format: a change re-runs the stage.
+pub fn version(kind: &StageKind) -> &'static str {
+    match kind {
+        StageKind::Sync { .. } => "sync-2",
+        StageKind::Map { .. } => "map-1",
+        StageKind::Tool { .. } => "tool-1",
+        StageKind::Localize { .. } => "localize-1",
+        StageKind::Metric { .. } => "metric-1",
+        StageKind::Placement { .. } => "placement-1",
+        StageKind::Observations { .. } => "observations-1",
+        StageKind::Fusion { .. } => "fusion-1",
+        StageKind::Gripper { .. } => "gripper-1",
+        StageKind::Outputs { .. } => "outputs-1",
+    }
+}
+
+/// The parameters a stage runs with (recorded in its manifest).
+pub fn parameters(kind: &StageKind) -> serde_json::Value {
+    match kind {
+        StageKind::Map { .. } => serde_json::json!({ "loop_closure": true }),
+        StageKind::Fusion { .. } => {
+            let c = FusionConfig::default();
+            serde_json::json!({
+                "front_sigma": [c.front_sigma.position_m, c.front_sigma.rotation_rad],
+                "rear_sigma": [c.rear_sigma.position_m, c.rear_sigma.rotation_rad],
+                "huber_k": c.huber_k,
+                "max_interpolation_gap_s": c.max_interpolation_gap_s,
+                "match_tolerance_s": c.match_tolerance_s,
+            })
+        }
+        StageKind::Metric { .. } => {
+            let c = MetricConfig::default();
+            serde_json::json!({
+                "sigma_position_m": c.sigma_position_m,
+                "sigma_rotation_rad": c.sigma_rotation_rad,
+                "huber_k": c.huber_k,
+                "max_scale_sigma": c.max_scale_sigma,
+            })
+        }
+        _ => serde_json::Value::Null,
+    }
+}
+
+/// Digest of a file's content, named for the manifest.
+fn file_input(ctx: &SessionContext, name: String, path: &Path) -> Result<InputDigest> {
+    if !path.is_file() {
+        return Err(input(
+            path,
+            format!(
+                "missing: the stage needs it ({name}); re-ingest the episode or fix the session"
+            ),
+        ));
+    }
+    Ok(InputDigest {
+        name,
+        path: ctx.relative(path),
+        digest: sha256_file(path)?,
+    })
+}
+
+/// Digest of a lens stream: its `frames.csv` and every frame file's name and size (the images
+/// are not read: hashing hundreds of gigabytes of frames per check would cost more than the
+/// check saves; a frame replaced by one of the same size is not noticed).
+pub fn stream_input(
+    ctx: &SessionContext,
+    layout: &EpisodeLayout,
+    camera: &str,
+    lens: &str,
+) -> Result<InputDigest> {
+    let csv = layout.frames_csv(camera, lens);
+    if !csv.is_file() {
+        return Err(input(
+            &csv,
+            format!(
+                "missing: expected lens `{lens}` of camera `{camera}` in episode {} (every wrist \
+                 records both lenses); re-ingest the episode",
+                layout
+                    .root()
+                    .file_name()
+                    .map_or_else(String::new, |n| n.to_string_lossy().into_owned())
+            ),
+        ));
+    }
+    let frames = kiwi_core::layout::read_frames_csv(&csv)?;
+    let mut text = sha256_file(&csv)?;
+    text.push('\n');
+    for f in &frames {
+        let path = layout.frame_path(camera, lens, f);
+        let size = std::fs::metadata(&path).map(|m| m.len()).map_err(|e| {
+            input(
+                &path,
+                format!("frame listed in {} cannot be read: {e}", csv.display()),
+            )
+        })?;
+        text.push_str(&format!("{}={size}\n", f.file));
+    }
+    Ok(InputDigest {
+        name: format!("stream {camera}/{lens}"),
+        path: ctx.relative(&layout.lens_dir(camera, lens)),
+        digest: sha256_bytes(text.as_bytes()),
+    })
+}
+
+fn calibration_input(ctx: &SessionContext, wrist: &WristContext) -> Result<InputDigest> {
+    file_input(
+        ctx,
+        format!("calibration {}", wrist.camera),
+        &wrist.calibration_path,
+    )
+}
+
+fn wrist(ctx: &SessionContext, side: Side) -> Result<&WristContext> {
+    ctx.wrists.get(&side).ok_or_else(|| {
+        input(
+            &ctx.toml,
+            format!("no [wrists.{}] in the session", side.camera_name()),
+        )
+    })
+}
+
+/// The stage's own inputs (files and streams); the outputs of the stages it depends on are
+/// added by the runner.
+pub fn inputs(ctx: &SessionContext, kind: &StageKind) -> Result<Vec<InputDigest>> {
+    let map_ep = ctx.episode(&ctx.session.map_episode);
+    Ok(match kind {
+        StageKind::Sync { episode } => {
+            let layout = ctx.episode(episode);
+            let mut v = Vec::new();
+            for camera in ctx.session.camera_names() {
+                v.push(file_input(
+                    ctx,
+                    format!("audio {camera}"),
+                    &layout.audio_wav(camera),
+                )?);
+                v.push(file_input(
+                    ctx,
+                    format!("meta {camera}"),
+                    &layout.meta_json(camera),
+                )?);
+            }
+            for w in ctx.wrists.values() {
+                v.push(calibration_input(ctx, w)?);
+            }
+            if let Some(h) = &ctx.session.head {
+                v.push(file_input(
+                    ctx,
+                    "calibration head".into(),
+                    &ctx.root.join(&h.calibration).join("calibration.json"),
+                )?);
+            }
+            v
+        }
+        StageKind::Map { map } => {
+            let (side, lens) = map_source(ctx, *map);
+            let w = wrist(ctx, side)?;
+            vec![
+                stream_input(ctx, &map_ep, w.camera, lens.name())?,
+                calibration_input(ctx, w)?,
+            ]
+        }
+        StageKind::Tool { side } => {
+            let w = wrist(ctx, *side)?;
+            let mut v = vec![
+                stream_input(ctx, &map_ep, w.camera, "front")?,
+                calibration_input(ctx, w)?,
+            ];
+            if let Some(def) = &w.tool {
+                v.push(InputDigest {
+                    name: "tool definition".into(),
+                    path: format!("hardware/tools/{}.toml", def.name),
+                    digest: sha256_bytes(serde_json::to_string(def).unwrap_or_default().as_bytes()),
+                });
+            }
+            v
+        }
+        StageKind::Localize {
+            episode,
+            side,
+            lens,
+        } => {
+            let w = wrist(ctx, *side)?;
+            vec![
+                stream_input(ctx, &ctx.episode(episode), w.camera, lens.name())?,
+                calibration_input(ctx, w)?,
+            ]
+        }
+        StageKind::Metric { map } => {
+            let (side, _) = map_source(ctx, *map);
+            let w = wrist(ctx, side)?;
+            vec![
+                file_input(ctx, format!("imu {}", w.camera), &map_ep.imu_csv(w.camera))?,
+                calibration_input(ctx, w)?,
+            ]
+        }
+        StageKind::Placement { side } | StageKind::Observations { side, .. } => {
+            vec![calibration_input(ctx, wrist(ctx, *side)?)?]
+        }
+        StageKind::Fusion { episode, side } => {
+            let w = wrist(ctx, *side)?;
+            let layout = ctx.episode(episode);
+            vec![
+                file_input(ctx, format!("imu {}", w.camera), &layout.imu_csv(w.camera))?,
+                file_input(
+                    ctx,
+                    format!("frames {}/front", w.camera),
+                    &layout.frames_csv(w.camera, "front"),
+                )?,
+                calibration_input(ctx, w)?,
+            ]
+        }
+        StageKind::Gripper { episode, side } => {
+            let w = wrist(ctx, *side)?;
+            vec![
+                stream_input(ctx, &ctx.episode(episode), w.camera, "front")?,
+                calibration_input(ctx, w)?,
+            ]
+        }
+        StageKind::Outputs { .. } => {
+            let mut v = Vec::new();
+            for w in ctx.wrists.values() {
+                v.push(calibration_input(ctx, w)?);
+                if let Some(def) = &w.tool {
+                    v.push(InputDigest {
+                        name: format!("tool {}", w.camera),
+                        path: format!("hardware/tools/{}.toml", def.name),
+                        digest: sha256_bytes(
+                            serde_json::to_string(def).unwrap_or_default().as_bytes(),
+                        ),
+                    });
+                }
+            }
+            v
+        }
+    })
+}
+
+/// The wrist and lens a map is built from.
+pub fn map_source(ctx: &SessionContext, map: MapName) -> (Side, Lens) {
+    match map {
+        MapName::Rear => (ctx.map_side(), Lens::Rear),
+        MapName::Front(side) => (side, Lens::Front),
+    }
+}
+
+/// Everything a stage body needs.
+pub struct StageEnv<'a> {
+    /// The session.
+    pub ctx: &'a SessionContext,
+    /// Where to write the outputs.
+    pub out: &'a Path,
+    /// Progress callback.
+    pub progress: ProgressFn<'a>,
+}
+
+impl StageEnv<'_> {
+    fn dep_dir(&self, kind: &StageKind) -> PathBuf {
+        id_of(kind).dir(&self.ctx.root)
+    }
+}
+
+/// A JSON value with wall-time fields removed, so that the written summary is deterministic.
+fn without_timings(value: serde_json::Value) -> serde_json::Value {
+    match value {
+        serde_json::Value::Object(mut m) => {
+            for key in ["seconds", "frames_per_second", "frames_per_s"] {
+                m.remove(key);
+            }
+            serde_json::Value::Object(m)
+        }
+        other => other,
+    }
+}
+
+fn write_summary<T: serde::Serialize>(dir: &Path, value: &T) -> Result<()> {
+    let v = serde_json::to_value(value).map_err(|e| BackendError::Input {
+        path: dir.join(SUMMARY_FILE),
+        message: e.to_string(),
+    })?;
+    write_json(&dir.join(SUMMARY_FILE), &without_timings(v))
+}
+
+/// Run a stage's body.
+pub fn run(env: &StageEnv<'_>, kind: &StageKind) -> Result<()> {
+    match kind {
+        StageKind::Sync { episode } => run_sync(env, episode),
+        StageKind::Map { map } => run_map(env, *map),
+        StageKind::Tool { side } => run_tool(env, *side),
+        StageKind::Localize {
+            episode,
+            side,
+            lens,
+        } => run_localize(env, episode, *side, *lens),
+        StageKind::Metric { map } => run_metric(env, *map),
+        StageKind::Placement { side } => run_placement(env, *side),
+        StageKind::Observations { episode, side } => run_observations(env, episode, *side),
+        StageKind::Fusion { episode, side } => run_fusion(env, episode, *side),
+        StageKind::Gripper { episode, side } => run_gripper(env, episode, *side),
+        StageKind::Outputs { episode } => run_outputs(env, episode),
+    }
+}
+
+fn run_sync(env: &StageEnv<'_>, episode: &str) -> Result<()> {
+    let layout = env.ctx.episode(episode);
+    let mut cameras: Vec<(String, PathBuf)> = env
+        .ctx
+        .wrists
+        .values()
+        .map(|w| (w.camera.to_string(), w.calibration_path.clone()))
+        .collect();
+    if let Some(h) = &env.ctx.session.head {
+        cameras.push((
+            "head".into(),
+            env.ctx.root.join(&h.calibration).join("calibration.json"),
+        ));
+    }
+    let mut inputs = Vec::new();
+    for (k, (camera, calibration_path)) in cameras.iter().enumerate() {
+        let meta = layout.read_meta(camera)?;
+        let calibration = kiwi_core::artifact::UnitCalibration::load(calibration_path)?;
+        inputs.push(crate::sync::SyncInput {
+            name: camera.clone(),
+            audio: crate::sync::audio::read_audio(&layout.audio_wav(camera))?,
+            av_delay_s: crate::sync::av_delay_for(
+                &calibration,
+                Some(&meta.mode),
+                calibration_path,
+            )?,
+        });
+        (env.progress)(k + 1, cameras.len() + 1);
+    }
+    let result = crate::sync::synchronise(&inputs);
+    write_json(&env.out.join(SYNC_FILE), &result)
+}
+
+fn open_stream(ctx: &SessionContext, episode: &str, side: Side, lens: Lens) -> Result<LensStream> {
+    let w = wrist(ctx, side)?;
+    LensStream::open(
+        ctx.episode(episode).root(),
+        w.camera,
+        lens.name(),
+        Some(&w.calibration_path),
+        None,
+    )
+}
+
+fn run_map(env: &StageEnv<'_>, map: MapName) -> Result<()> {
+    let (side, lens) = map_source(env.ctx, map);
+    let stream = open_stream(env.ctx, &env.ctx.session.map_episode, side, lens)?;
+    let (vmap, summary) = build_map_with(&stream, true, &mut |done, total| {
+        (env.progress)(done, total);
+    })?;
+    if summary.keyframes < 2 || summary.landmarks == 0 {
+        return Err(BackendError::Vision {
+            context: format!(
+                "map {} from {}",
+                map.label(),
+                env.ctx.relative(
+                    &env.ctx
+                        .episode(&env.ctx.session.map_episode)
+                        .lens_dir(wrist(env.ctx, side)?.camera, lens.name())
+                )
+            ),
+            message: format!(
+                "the stream gave {} keyframes and {} landmarks: not a map; record the mapping \
+                 episode with slower, wider motion over textured surroundings",
+                summary.keyframes, summary.landmarks
+            ),
+        });
+    }
+    vmap.save(&env.out.join(MAP_FILE))?;
+    write_summary(env.out, &summary)
+}
+
+fn run_tool(env: &StageEnv<'_>, side: Side) -> Result<()> {
+    let w = wrist(env.ctx, side)?;
+    let Some(def) = &w.tool else {
+        return Ok(());
+    };
+    let layout = env.ctx.episode(&env.ctx.session.map_episode);
+    let lens_dir = layout.lens_dir(w.camera, "front");
+    let frames = kiwi_core::layout::read_frames_csv(&layout.frames_csv(w.camera, "front"))?;
+    let lens = w.calibration.lens("front").ok_or_else(|| {
+        input(
+            &w.calibration_path,
+            "field `lenses`: no lens named `front`".into(),
+        )
+    })?;
+    let camera = lens.camera()?;
+    let options = crate::gripper::calibrate::CalibrateOptions {
+        max_frames: TOOL_CALIBRATION_FRAMES,
+        unit_id: w.calibration.unit_id.clone(),
+        lens: "front".into(),
+        unit_calibration_date: w.calibration.date.clone(),
+    };
+    let done = std::sync::atomic::AtomicUsize::new(0);
+    let total = TOOL_CALIBRATION_FRAMES.min(frames.len());
+    let record = match crate::gripper::calibrate::calibrate_tool(
+        &camera,
+        def,
+        &lens_dir,
+        &frames,
+        &options,
+        &|| {
+            let d = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+            (env.progress)(d, total);
+        },
+    ) {
+        Ok(tc) => ToolRecord {
+            calibrated: true,
+            reason: None,
+            calibration: Some(tc),
+        },
+        Err(e) => ToolRecord {
+            calibrated: false,
+            reason: Some(format!(
+                "{e}; the opening is measured with the tool definition's CAD geometry"
+            )),
+            calibration: None,
+        },
+    };
+    write_json(&env.out.join(TOOL_FILE), &record)
+}
+
+/// Frames of the map episode searched for the tool's body tag.
+const TOOL_CALIBRATION_FRAMES: usize = 60;
+
+/// `tool.json` of a tool stage: the calibration, or why the CAD geometry is used.
+#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
+pub struct ToolRecord {
+    /// Whether the body tag gave a calibration.
+    pub calibrated: bool,
+    /// Why not.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub reason: Option<String>,
+    /// The calibration.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub calibration: Option<ToolCalibration>,
+}
+
+fn run_localize(env: &StageEnv<'_>, episode: &str, side: Side, lens: Lens) -> Result<()> {
+    let map_dir = env.dep_dir(&StageKind::Map {
+        map: MapName::for_lens(side, lens),
+    });
+    let map = VisualMap::load(&map_dir.join(MAP_FILE))?;
+    let stream = open_stream(env.ctx, episode, side, lens)?;
+    let (results, summary) = localize_stream(
+        &map,
+        &stream,
+        &LocalizerOptions::default(),
+        &mut |done, total| (env.progress)(done, total),
+    )?;
+    write_poses_csv(&env.out.join(POSES_FILE), &results)?;
+    write_summary(env.out, &summary)
+}
+
+fn localizations_of(
+    env: &StageEnv<'_>,
+    episode: &str,
+    side: Side,
+    lens: Lens,
+) -> Result<Vec<crate::formats::tables::Localization>> {
+    let dir = env.dep_dir(&StageKind::Localize {
+        episode: episode.to_string(),
+        side,
+        lens,
+    });
+    read_localizations(&dir.join(POSES_FILE))
+}
+
+fn run_metric(env: &StageEnv<'_>, map: MapName) -> Result<()> {
+    let (side, lens) = map_source(env.ctx, map);
+    let w = wrist(env.ctx, side)?;
+    let map_ep = env.ctx.session.map_episode.clone();
+    let rows = localizations_of(env, &map_ep, side, lens)?;
+    let imu_path = env.ctx.episode(&map_ep).imu_csv(w.camera);
+    let imu = ImuSeries::read_csv(&imu_path)?;
+    let cal = match lens {
+        Lens::Front => &w.front,
+        Lens::Rear => &w.rear,
+    };
+    let mut file = metric_from_localizations(
+        &rows,
+        &imu,
+        lens.name(),
+        cal,
+        &w.imu,
+        &MetricConfig::default(),
+        std::time::Instant::now(),
+    )
+    .map_err(|e| {
+        BackendError::Estimation(format!("metric recovery of the {} map: {e}", map.label()))
+    })?;
+    file.seconds = None;
+    write_json(&env.out.join("metric.json"), &file)
+}
+
+fn metric_of_map(env: &StageEnv<'_>, map: MapName) -> Result<MetricFile> {
+    read_metric(&env.dep_dir(&StageKind::Metric { map }).join("metric.json"))
+}
+
+fn run_placement(env: &StageEnv<'_>, side: Side) -> Result<()> {
+    let w = wrist(env.ctx, side)?;
+    let map_ep = env.ctx.session.map_episode.clone();
+    let front = localizations_of(env, &map_ep, side, Lens::Front)?;
+    let rear = localizations_of(env, &map_ep, side, Lens::Rear)?;
+    let front_metric = metric_of_map(env, MapName::Front(side))?;
+    let rear_metric = metric_of_map(env, MapName::Rear)?;
+    let path = env.dep_dir(&StageKind::Metric {
+        map: MapName::Front(side),
+    });
+    let file = placement_from_localizations(
+        &front,
+        &rear,
+        &w.front,
+        &w.rear,
+        &front_metric.world_from_map.to_sim3(&path)?,
+        &rear_metric.world_from_map.to_sim3(&path)?,
+        &PlacementConfig::default(),
+    )
+    .map_err(|e| {
+        BackendError::Estimation(format!(
+            "placement of the {} front map: {e}",
+            side.camera_name()
+        ))
+    })?;
+    write_json(&env.out.join("placement.json"), &file)
+}
+
+/// The frozen scene reference of a wrist, from the session's metric and placement stages.
+pub fn scene_reference(ctx: &SessionContext, side: Side) -> Result<SceneReference> {
+    let dir = |kind: StageKind| id_of(&kind).dir(&ctx.root);
+    let front_path = dir(StageKind::Metric {
+        map: MapName::Front(side),
+    })
+    .join("metric.json");
+    let rear_path = dir(StageKind::Metric { map: MapName::Rear }).join("metric.json");
+    let placement_path = dir(StageKind::Placement { side }).join("placement.json");
+    let front = read_metric(&front_path)?;
+    let rear = read_metric(&rear_path)?;
+    let placement: PlacementFile = read_placement(&placement_path)?;
+    let g = placement.scene_from_front_map.to_sim3(&placement_path)?;
+    Ok(SceneReference {
+        front_metric: front.world_from_map.to_sim3(&front_path)?,
+        rear_metric: rear.world_from_map.to_sim3(&rear_path)?,
+        scene_from_front_map: nalgebra::Isometry3::from_parts(
+            nalgebra::Translation3::from(g.translation),
+            g.rotation,
+        ),
+    })
+}
+
+fn run_observations(env: &StageEnv<'_>, episode: &str, side: Side) -> Result<()> {
+    let w = wrist(env.ctx, side)?;
+    let front = localizations_of(env, episode, side, Lens::Front)?;
+    let rear = localizations_of(env, episode, side, Lens::Rear)?;
+    let reference = scene_reference(env.ctx, side)?;
+    let (obs, counts) = body_observations(&front, &rear, &reference, &w.front, &w.rear);
+    write_observations(&env.out.join(OBSERVATIONS_FILE), &obs)?;
+    write_json(&env.out.join(SUMMARY_FILE), &counts)
+}
+
+fn run_fusion(env: &StageEnv<'_>, episode: &str, side: Side) -> Result<()> {
+    let w = wrist(env.ctx, side)?;
+    let layout = env.ctx.episode(episode);
+    let obs_path = env
+        .dep_dir(&StageKind::Observations {
+            episode: episode.to_string(),
+            side,
+        })
+        .join(OBSERVATIONS_FILE);
+    let observations = read_observations(&obs_path).map_err(|e| {
+        BackendError::Estimation(format!(
+            "the {} wrist has no visual observation in this episode ({e}): neither lens \
+             localized in its map",
+            side.camera_name()
+        ))
+    })?;
+    let imu = ImuSeries::read_csv(&layout.imu_csv(w.camera))?;
+    let frames = kiwi_core::layout::read_frames_csv(&layout.frames_csv(w.camera, "front"))?;
+    let node_times: Vec<f64> = frames.iter().map(|f| f.t + w.front.time_shift_s).collect();
+    let config = FusionConfig::default();
+    let result = fuse(imu.samples(), &w.imu, &node_times, &observations, &config)?;
+    let camera_times: Vec<f64> = frames.iter().map(|f| f.t).collect();
+    write_fused(&env.out.join(FUSED_FILE), &camera_times, &result.nodes)?;
+    let stats = crate::fusion::residual_statistics(&result, &observations, &config);
+    write_json(&env.out.join(SUMMARY_FILE), &stats)?;
+    // Read back once: the file is what later stages use, so it must parse.
+    read_fused(&env.out.join(FUSED_FILE))?;
+    Ok(())
+}
+
+fn run_gripper(env: &StageEnv<'_>, episode: &str, side: Side) -> Result<()> {
+    let w = wrist(env.ctx, side)?;
+    let Some(def) = &w.tool else {
+        return Ok(());
+    };
+    let tool_path = env.dep_dir(&StageKind::Tool { side }).join(TOOL_FILE);
+    let text = kiwi_core::io::read_text(&tool_path)?;
+    let record: ToolRecord = serde_json::from_str(&text)
+        .map_err(|e| input(&tool_path, format!("not a tool stage record: {e}; re-run")))?;
+    let lens = w.calibration.lens("front").ok_or_else(|| {
+        input(
+            &w.calibration_path,
+            "field `lenses`: no lens named `front`".into(),
+        )
+    })?;
+    let camera = lens.camera()?;
+    let lens_dir = env.ctx.episode(episode).lens_dir(w.camera, "front");
+    let total = kiwi_core::layout::read_frames_csv(&lens_dir.join("frames.csv"))?.len();
+    let done = std::sync::atomic::AtomicUsize::new(0);
+    let tick = || {
+        let d = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+        (env.progress)(d, total);
+    };
+    let (_, files) = match &record.calibration {
+        Some(tc) => crate::gripper::run_calibrated(&camera, tc, &lens_dir, env.out, &tick)?,
+        None => crate::gripper::run(&camera, def, &lens_dir, env.out, &tick)?,
+    };
+    // The summary's speed is a wall time: keep it out so the stage's files are deterministic.
+    let summary: serde_json::Value =
+        serde_json::from_str(&kiwi_core::io::read_text(&files.summary)?)
+            .map_err(|e| input(&files.summary, format!("cannot read back: {e}")))?;
+    write_json(&files.summary, &without_timings(summary))
+}
+
+/// Read a stage's manifest, for summaries.
+pub fn manifest_of(ctx: &SessionContext, id: &StageId) -> Option<Manifest> {
+    Manifest::read(&id.dir(&ctx.root))
+}
+
+/// Write bytes atomically (re-exported for the outputs module).
+pub fn write_file(path: &Path, bytes: &[u8]) -> Result<()> {
+    Ok(write_atomic(path, bytes)?)
+}
+
+/// Sub-folder of the outputs stage's folder that is published as the episode's `out/`.
+pub const PUBLISHED_DIR: &str = "out";
+
+fn localization_record(path: &Path) -> Result<crate::outputs::LocalizationRecord> {
+    let text = kiwi_core::io::read_text(path)?;
+    let mut record = crate::outputs::LocalizationRecord::default();
+    let mut lines = text.lines();
+    let header: Vec<&str> = lines.next().unwrap_or_default().split(',').collect();
+    let status = header.iter().position(|c| *c == "status");
+    let reason = header.iter().position(|c| *c == "reason");
+    let (Some(status), Some(reason)) = (status, reason) else {
+        return Err(input(
+            path,
+            "expected a poses.csv with status and reason columns; re-run the localize stage".into(),
+        ));
+    };
+    for line in lines.filter(|l| !l.trim().is_empty()) {
+        // The reason is the last column and may itself contain commas.
+        let fields: Vec<&str> = line.splitn(header.len(), ',').collect();
+        record.frames += 1;
+        if fields.get(status).is_some_and(|s| *s == "lost") {
+            let why = fields.get(reason).copied().unwrap_or("").trim();
+            *record
+                .lost_reasons
+                .entry(crate::quality::reason_class(if why.is_empty() {
+                    "no reason given"
+                } else {
+                    why
+                }))
+                .or_insert(0) += 1;
+        } else {
+            record.localized += 1;
+        }
+    }
+    Ok(record)
+}
+
+fn read_json_file<T: serde::de::DeserializeOwned>(path: &Path, what: &str) -> Result<T> {
+    let text = kiwi_core::io::read_text(path)?;
+    serde_json::from_str(&text).map_err(|e| {
+        input(
+            path,
+            format!("not a {what}: {e}; re-run the stage that writes it"),
+        )
+    })
+}
+
+fn opening_series(dir: &Path) -> Result<Option<crate::outputs::OpeningSeries>> {
+    let csv = dir.join("opening.csv");
+    if !csv.is_file() {
+        return Ok(None);
+    }
+    let summary: serde_json::Value = read_json_file(&dir.join("opening.json"), "gripper summary")?;
+    let px_per_m = summary
+        .get("px_per_m")
+        .and_then(serde_json::Value::as_f64)
+        .unwrap_or(0.0);
+    let text = kiwi_core::io::read_text(&csv)?;
+    let mut rows = Vec::new();
+    let mut unit_out = "rad";
+    for (i, line) in text
+        .lines()
+        .enumerate()
+        .skip(1)
+        .filter(|(_, l)| !l.trim().is_empty())
+    {
+        let f: Vec<&str> = line.splitn(5, ',').collect();
+        if f.len() < 4 {
+            return Err(input(
+                &csv,
+                format!("line {}: expected t,opening,unit,confidence,status", i + 1),
+            ));
+        }
+        let t: f64 = f[0]
+            .parse()
+            .map_err(|_| input(&csv, format!("line {}: bad time `{}`", i + 1, f[0])))?;
+        let raw: Option<f64> = f[1].parse().ok().filter(|v: &f64| v.is_finite());
+        let (value, unit) = match f[2] {
+            "deg" => (raw.map(f64::to_radians), "rad"),
+            "px" if px_per_m > 0.0 => (raw.map(|v| v / px_per_m), "m"),
+            other => {
+                return Err(input(
+                    &csv,
+                    format!(
+                        "line {}: opening unit `{other}` cannot be converted to SI (px needs px_per_m in opening.json)",
+                        i + 1
+                    ),
+                ));
+            }
+        };
+        unit_out = unit;
+        rows.push(crate::outputs::Opening {
+            t,
+            value,
+            confidence: f[3].parse().unwrap_or(0.0),
+        });
+    }
+    Ok(Some(crate::outputs::OpeningSeries {
+        unit: unit_out,
+        rows,
+    }))
+}
+
+fn run_outputs(env: &StageEnv<'_>, episode: &str) -> Result<()> {
+    let ctx = env.ctx;
+    let sync: crate::sync::SyncResult = read_json_file(
+        &env.dep_dir(&StageKind::Sync {
+            episode: episode.to_string(),
+        })
+        .join(SYNC_FILE),
+        "sync result",
+    )?;
+    let mut metric = std::collections::BTreeMap::new();
+    let mut maps = vec![MapName::Rear];
+    maps.extend(ctx.wrists.keys().map(|&s| MapName::Front(s)));
+    for map in maps {
+        metric.insert(map.label(), metric_of_map(env, map)?);
+    }
+    let mut wrists = Vec::new();
+    for (&side, w) in &ctx.wrists {
+        let fused = read_fused(
+            &env.dep_dir(&StageKind::Fusion {
+                episode: episode.to_string(),
+                side,
+            })
+            .join(FUSED_FILE),
+        )?;
+        let loc = |lens: Lens| {
+            localization_record(
+                &env.dep_dir(&StageKind::Localize {
+                    episode: episode.to_string(),
+                    side,
+                    lens,
+                })
+                .join(POSES_FILE),
+            )
+        };
+        let observations = read_json_file(
+            &env.dep_dir(&StageKind::Observations {
+                episode: episode.to_string(),
+                side,
+            })
+            .join(SUMMARY_FILE),
+            "observation summary",
+        )?;
+        let fusion = read_json_file(
+            &env.dep_dir(&StageKind::Fusion {
+                episode: episode.to_string(),
+                side,
+            })
+            .join(SUMMARY_FILE),
+            "fusion summary",
+        )?;
+        let placement = read_placement(
+            &env.dep_dir(&StageKind::Placement { side })
+                .join("placement.json"),
+        )?;
+        let (opening, tool_calibrated) = if w.tool.is_some() {
+            let record: ToolRecord = read_json_file(
+                &env.dep_dir(&StageKind::Tool { side }).join(TOOL_FILE),
+                "tool record",
+            )?;
+            (
+                opening_series(&env.dep_dir(&StageKind::Gripper {
+                    episode: episode.to_string(),
+                    side,
+                }))?,
+                Some(record.calibrated),
+            )
+        } else {
+            (None, None)
+        };
+        wrists.push(crate::outputs::WristInputs {
+            camera: w.camera.to_string(),
+            unit: w.calibration.unit_id.clone(),
+            calibration_date: w.calibration.date.clone(),
+            certified: w.certified(),
+            fused,
+            front_cam_from_imu: w.front.cam_from_imu,
+            cam_from_tip: w.cam_from_tip,
+            opening,
+            front: loc(Lens::Front)?,
+            rear: loc(Lens::Rear)?,
+            observations,
+            fusion,
+            placement,
+            tool_calibrated,
+        });
+    }
+    let inputs = crate::outputs::EpisodeInputs {
+        episode: episode.to_string(),
+        map_episode: ctx.session.map_episode.clone(),
+        wrists,
+        sync,
+        metric,
+    };
+    crate::outputs::write_outputs(&inputs, &env.out.join(PUBLISHED_DIR))?;
+    Ok(())
+}
