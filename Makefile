@@ -6,11 +6,15 @@ SHELL := /bin/bash
 APT_PACKAGES := libopencv-dev clang libclang-dev libudev-dev pkg-config ffmpeg
 DEMO_OUT ?= demo-out
 DEMO_SEED ?= 7
+DEMO_UNITS := X5-DEMO-L X5-DEMO-R
+DEMO_RESOLUTION ?= 480
+# A survey that builds the maps, then a tabletop and a walk episode (seconds each).
+DEMO_DURATIONS ?= 20,5,6
 
 .PHONY: help deps build demo test bench clean
 
 help:
-	@echo "make demo   simulate a unit and certify it, simulate a session and check it (installs what it needs)"
+	@echo "make demo   certify two simulated units, record a session with them and run kiwi run on it (installs what it needs)"
 	@echo "make test   formatting, lints and every test"
 	@echo "make bench  benchmarks (release build)"
 	@echo "make deps   install the system packages the build needs (apt)"
@@ -28,14 +32,17 @@ build: deps
 
 demo: build
 	rm -rf $(DEMO_OUT)
-	./target/release/kiwi-sim unit --out $(DEMO_OUT)/captures/X5-DEMO --unit-id X5-DEMO --seed $(DEMO_SEED) --resolution 480 --views 24 --cam-imu-duration 4 --static-hours 4 --static-rate 100 --bench-duration 0 --rig-duration 20 --rig-modes 30fps --rig-repeats 2
-	./target/release/kiwi-calib certify --unit X5-DEMO --captures $(DEMO_OUT)/captures/X5-DEMO --out $(DEMO_OUT)/units
+	@for unit in $(DEMO_UNITS); do \
+	  ./target/release/kiwi-sim unit --out $(DEMO_OUT)/captures/$$unit --unit-id $$unit --seed $(DEMO_SEED) --resolution $(DEMO_RESOLUTION) --views 24 --cam-imu-duration 4 --static-hours 4 --static-rate 100 --bench-duration 0 --rig-duration 20 --rig-modes 30fps --rig-repeats 2 && \
+	  ./target/release/kiwi-calib certify --unit $$unit --captures $(DEMO_OUT)/captures/$$unit --out $(DEMO_OUT)/units || exit 1; \
+	done
 	./target/release/kiwi-calib units list $(DEMO_OUT)/units
-	./target/release/kiwi-sim session --out $(DEMO_OUT)/session --seed $(DEMO_SEED) --scenario tabletop --episodes 1 --duration 2 --resolution 480 --rate 29.97
+	./target/release/kiwi-sim session --out $(DEMO_OUT)/session --seed $(DEMO_SEED) --units $(DEMO_OUT)/units --left-unit X5-DEMO-L --right-unit X5-DEMO-R --scenario survey,tabletop,walk --episodes 3 --duration $(DEMO_DURATIONS) --resolution $(DEMO_RESOLUTION) --rate 29.97 --blur-samples 2
 	./target/release/kiwi inspect $(DEMO_OUT)/session/session.toml
+	./target/release/kiwi run --session $(DEMO_OUT)/session/session.toml
 	./target/release/kiwi-sim contact-sheet --out $(DEMO_OUT)/contact_sheet.png --seed $(DEMO_SEED) --tile 256
-	@echo "demo: unit X5-DEMO certified into $(DEMO_OUT)/units/X5-DEMO (report: $$(ls -d $(DEMO_OUT)/units/X5-DEMO/*/ | tail -1)report/index.md)"
-	@echo "demo: session in $(DEMO_OUT)/session (truth in its episodes' truth/ folders), contact sheet $(DEMO_OUT)/contact_sheet.png"
+	@echo "demo: units X5-DEMO-L and X5-DEMO-R certified into $(DEMO_OUT)/units (reports: $(DEMO_OUT)/units/*/*/report/index.md)"
+	@echo "demo: session in $(DEMO_OUT)/session; each episode's trajectories, TUM files and quality.json in $(DEMO_OUT)/session/episodes/<ep>/out/ (truth in its truth/ folder)"
 
 test: deps
 	cargo fmt --all -- --check
