@@ -101,9 +101,15 @@ pub struct PrintedPart {
 
 /// The groups of the bill of materials, in table order, with their headings.
 const GROUPS: [(&str, &str); 3] = [
-    ("core", "Kit: two wrist cameras, chopstick, parallel jaw, two cuffs"),
+    (
+        "core",
+        "Kit: two wrist cameras, chopstick, parallel jaw, two cuffs",
+    ),
     ("head", "Optional head module"),
-    ("robot", "Optional robot side (flange adapter and robust holder)"),
+    (
+        "robot",
+        "Optional robot side (flange adapter and robust holder)",
+    ),
 ];
 
 fn input(path: &Path, message: impl Into<String>) -> CalibError {
@@ -640,10 +646,7 @@ pub fn render_part(scad: &Path, out_dir: &Path) -> Result<RenderedPart> {
             .collect::<std::result::Result<_, _>>()
             .map_err(|e| input(scad, format!("cannot read the matrix in `{line}`: {e}")))?;
         if numbers.len() != 16 {
-            return Err(input(
-                scad,
-                format!("expected a 4 x 4 matrix in `{line}`"),
-            ));
+            return Err(input(scad, format!("expected a 4 x 4 matrix in `{line}`")));
         }
         quick_release.push(QuickReleaseFeature {
             side,
@@ -705,16 +708,8 @@ pub fn dovetail_probes(params: &HardwareParams, side: QuickReleaseSide) -> Vec<P
                 mx
             };
             for y in stations {
-                let inside = Point3::new(
-                    mx - nx * PROBE_OFFSET_MM,
-                    y,
-                    mz - nz * PROBE_OFFSET_MM,
-                );
-                let outside = Point3::new(
-                    mx + nx * PROBE_OFFSET_MM,
-                    y,
-                    mz + nz * PROBE_OFFSET_MM,
-                );
+                let inside = Point3::new(mx - nx * PROBE_OFFSET_MM, y, mz - nz * PROBE_OFFSET_MM);
+                let outside = Point3::new(mx + nx * PROBE_OFFSET_MM, y, mz + nz * PROBE_OFFSET_MM);
                 let plate = side == QuickReleaseSide::Plate;
                 probes.push(Probe {
                     at: inside,
@@ -930,7 +925,11 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("bom.csv");
         let header = "group,item,quantity,unit_price_usd,price_date,price_source,description\n";
-        std::fs::write(&path, format!("{header}core,Thing,2,1.5,2026-12-01,estimate (not a quote),x\n")).unwrap();
+        std::fs::write(
+            &path,
+            format!("{header}core,Thing,2,1.5,2026-12-01,estimate (not a quote),x\n"),
+        )
+        .unwrap();
         let items = read_bom(&path).unwrap();
         assert!(bom_markdown(&items).contains("| kit | 3.00 |"));
         std::fs::write(&path, format!("{header}core,Thing,2,1.5,,,x\n")).unwrap();
@@ -986,8 +985,7 @@ pub mod cli {
                     if stale.is_empty() {
                         return Ok("generated hardware files are up to date\n".into());
                     }
-                    let list: Vec<String> =
-                        stale.iter().map(|p| p.display().to_string()).collect();
+                    let list: Vec<String> = stale.iter().map(|p| p.display().to_string()).collect();
                     return Err(CalibError::Input {
                         path: layout.params(),
                         message: format!(

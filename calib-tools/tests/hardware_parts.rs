@@ -35,7 +35,11 @@ fn every_part_renders_closed_fits_the_printer_and_shares_the_dovetail() {
     assert_eq!(checks.len(), 12, "one STL per part file");
     let mut problems = Vec::new();
     for c in &checks {
-        problems.extend(c.problems(&params).into_iter().map(|p| format!("{}: {p}", c.part.name)));
+        problems.extend(
+            c.problems(&params)
+                .into_iter()
+                .map(|p| format!("{}: {p}", c.part.name)),
+        );
     }
     assert!(problems.is_empty(), "{}", problems.join("\n"));
     // Where each part must carry the quick-release, and which side.
@@ -55,12 +59,18 @@ fn every_part_renders_closed_fits_the_printer_and_shares_the_dovetail() {
     }
     // The probes can fail: a clamp probed as if it were a plate, and a plate whose profile is
     // 1 mm narrower than the parameters say, are caught.
-    let body = checks.iter().find(|c| c.part.name == "chopstick_body").unwrap();
+    let body = checks
+        .iter()
+        .find(|c| c.part.name == "chopstick_body")
+        .unwrap();
     let mesh = Mesh::read(&body.part.stl).unwrap();
     let mut as_plate = body.part.quick_release[0].clone();
     as_plate.side = Plate;
     assert!(failed_probes(&mesh, &params, &as_plate).len() > 10);
-    let holder = checks.iter().find(|c| c.part.name == "camera_holder_light").unwrap();
+    let holder = checks
+        .iter()
+        .find(|c| c.part.name == "camera_holder_light")
+        .unwrap();
     let mesh = Mesh::read(&holder.part.stl).unwrap();
     let mut wider = params.clone();
     wider.quick_release.width_mm += 1.0;

@@ -437,15 +437,24 @@ impl HardwareParams {
             ("bearing.outer_diameter_mm", self.bearing.outer_diameter_mm),
             ("chopstick.jaw_length_mm", c.jaw_length_mm),
             ("chopstick.brim_thickness_mm", c.brim_thickness_mm),
-            ("chopstick.dot_to_gripping_face_mm", c.dot_to_gripping_face_mm),
+            (
+                "chopstick.dot_to_gripping_face_mm",
+                c.dot_to_gripping_face_mm,
+            ),
             ("chopstick.max_tip_opening_mm", c.max_tip_opening_mm),
             ("chopstick.gear_module_mm", c.gear_module_mm),
             ("chopstick.gear_pitch_radius_mm", c.gear_pitch_radius_mm),
             ("parallel_jaw.jaw_length_mm", pj.jaw_length_mm),
             ("parallel_jaw.plate_thickness_mm", pj.plate_thickness_mm),
-            ("parallel_jaw.dot_to_gripping_face_mm", pj.dot_to_gripping_face_mm),
+            (
+                "parallel_jaw.dot_to_gripping_face_mm",
+                pj.dot_to_gripping_face_mm,
+            ),
             ("parallel_jaw.max_gap_mm", pj.max_gap_mm),
-            ("cuff.palm_from_reference_mm", self.cuff.palm_from_reference_mm),
+            (
+                "cuff.palm_from_reference_mm",
+                self.cuff.palm_from_reference_mm,
+            ),
             ("hat.tag_size_mm", self.hat.tag_size_mm),
             ("flange.pitch_circle_mm", self.flange.pitch_circle_mm),
         ];
@@ -457,7 +466,10 @@ impl HardwareParams {
         let non_negative = [
             ("chopstick.jaw_offset_mm", c.jaw_offset_mm),
             ("parallel_jaw.jaw_offset_mm", pj.jaw_offset_mm),
-            ("tool_mount.tag_behind_hinge_mm", self.tool_mount.tag_behind_hinge_mm),
+            (
+                "tool_mount.tag_behind_hinge_mm",
+                self.tool_mount.tag_behind_hinge_mm,
+            ),
         ];
         for (field, v) in non_negative {
             if !(v.is_finite() && v >= 0.0) {
@@ -524,7 +536,9 @@ impl HardwareParams {
         if clearance < MIN_TAG_CLEARANCE_MM {
             return Err(invalid(
                 "tool_mount.tag_behind_hinge_mm",
-                &format!("a tag plate at least {MIN_TAG_CLEARANCE_MM} mm clear of the camera's front face"),
+                &format!(
+                    "a tag plate at least {MIN_TAG_CLEARANCE_MM} mm clear of the camera's front face"
+                ),
                 format!("{clearance:.2} mm"),
             ));
         }
@@ -768,16 +782,20 @@ impl HardwareParams {
 
     /// Generate `params.scad` and the tool definition files.
     pub fn generate(&self) -> Result<GeneratedHardware> {
-        let tools = [ToolKind::Chopstick, ToolKind::ParallelJaw, ToolKind::BareHand]
-            .into_iter()
-            .map(|kind| {
-                let def = self.tool_definition(kind);
-                let text = tool_toml(&def);
-                // What is written must read back as a valid definition.
-                ToolDefinition::parse(&text, Path::new(&format!("<generated {}>", def.name)))?;
-                Ok((def.name.clone(), text))
-            })
-            .collect::<Result<Vec<_>>>()?;
+        let tools = [
+            ToolKind::Chopstick,
+            ToolKind::ParallelJaw,
+            ToolKind::BareHand,
+        ]
+        .into_iter()
+        .map(|kind| {
+            let def = self.tool_definition(kind);
+            let text = tool_toml(&def);
+            // What is written must read back as a valid definition.
+            ToolDefinition::parse(&text, Path::new(&format!("<generated {}>", def.name)))?;
+            Ok((def.name.clone(), text))
+        })
+        .collect::<Result<Vec<_>>>()?;
         Ok(GeneratedHardware {
             params_scad: self.params_scad()?,
             tools,
@@ -799,7 +817,11 @@ impl HardwareParams {
         let p = &self.printer;
         line(&mut s, "printer_name", format!("{:?}", p.name));
         line(&mut s, "printer_build_volume", vec3(p.build_volume_mm));
-        line(&mut s, "bearing_seat_allowance", num(p.bearing_seat_allowance_mm));
+        line(
+            &mut s,
+            "bearing_seat_allowance",
+            num(p.bearing_seat_allowance_mm),
+        );
         line(&mut s, "hole_allowance", num(p.hole_allowance_mm));
         line(&mut s, "sliding_clearance", num(p.sliding_clearance_mm));
         line(&mut s, "camera_clearance", num(p.camera_clearance_mm));
@@ -811,18 +833,39 @@ impl HardwareParams {
         line(&mut s, "cam_depth", num(c.depth_mm));
         line(&mut s, "cam_flat_depth", num(c.flat_depth_mm));
         line(&mut s, "cam_corner_radius", num(c.corner_radius_mm));
-        line(&mut s, "cam_lens_below_top", num(c.lens_center_below_top_mm));
-        line(&mut s, "cam_pupil_ahead_of_mid", num(c.pupil_ahead_of_mid_mm));
+        line(
+            &mut s,
+            "cam_lens_below_top",
+            num(c.lens_center_below_top_mm),
+        );
+        line(
+            &mut s,
+            "cam_pupil_ahead_of_mid",
+            num(c.pupil_ahead_of_mid_mm),
+        );
         line(&mut s, "cam_lens_diameter", num(c.lens_diameter_mm));
-        line(&mut s, "cam_tripod_screw_d", num(c.tripod_screw_diameter_mm));
-        line(&mut s, "cam_tripod_head_d", num(c.tripod_screw_head_diameter_mm));
-        line(&mut s, "cam_tripod_head_h", num(c.tripod_screw_head_height_mm));
+        line(
+            &mut s,
+            "cam_tripod_screw_d",
+            num(c.tripod_screw_diameter_mm),
+        );
+        line(
+            &mut s,
+            "cam_tripod_head_d",
+            num(c.tripod_screw_head_diameter_mm),
+        );
+        line(
+            &mut s,
+            "cam_tripod_head_h",
+            num(c.tripod_screw_head_height_mm),
+        );
         let face = -c.pupil_ahead_of_mid_mm + c.flat_depth_mm / 2.0;
         s.push_str("// Camera body in the front-lens frame: front face z, top y, bottom y.\n");
         line(&mut s, "cam_front_face_z", num(face));
         line(&mut s, "cam_mid_z", num(-c.pupil_ahead_of_mid_mm));
         line(&mut s, "cam_top_y", num(-c.lens_center_below_top_mm));
-        line(&mut s, 
+        line(
+            &mut s,
             "cam_bottom_y",
             num(c.height_mm - c.lens_center_below_top_mm),
         );
@@ -846,15 +889,24 @@ impl HardwareParams {
         line(&mut s, "qr_stop_head_h", num(q.stop_screw_head_height_mm));
         line(&mut s, "qr_stop_from_center", num(q.stop_from_center_mm));
         line(&mut s, "qr_plate_profile", points(&self.plate_profile_mm()));
-        line(&mut s, "qr_channel_profile", points(&self.channel_profile_mm()));
+        line(
+            &mut s,
+            "qr_channel_profile",
+            points(&self.channel_profile_mm()),
+        );
         line(&mut s, "q_in_front", vec3(self.q_in_front_mm().into()));
 
         let m = &self.tool_mount;
         line(&mut s, "hinge_in_q", vec3(m.hinge_in_q_mm));
-        line(&mut s, "hinge_in_front", vec3(self.hinge_in_front_mm().into()));
+        line(
+            &mut s,
+            "hinge_in_front",
+            vec3(self.hinge_in_front_mm().into()),
+        );
         let r = self.front_from_hinge_rotation();
         let h = Vector3::from(m.hinge_in_q_mm);
-        line(&mut s, 
+        line(
+            &mut s,
             "q_from_hinge",
             format!(
                 "[{}, {}, {}, [0, 0, 0, 1]]",
@@ -887,7 +939,8 @@ impl HardwareParams {
         line(&mut s, "chop_brim_outer", num(ch.brim_outer_mm));
         line(&mut s, "chop_rib_height", num(ch.rib_height_mm));
         line(&mut s, "chop_rib_width", num(ch.rib_width_mm));
-        line(&mut s, 
+        line(
+            &mut s,
             "chop_dots",
             list(&Self::dot_positions_mm(
                 ch.jaw_offset_mm,
@@ -895,17 +948,31 @@ impl HardwareParams {
                 ch.dot_count,
             )),
         );
-        line(&mut s, "chop_closed_half_angle", num(angles.closed_half_rad.to_degrees()));
-        line(&mut s, "chop_max_half_angle", num(angles.max_half_rad.to_degrees()));
+        line(
+            &mut s,
+            "chop_closed_half_angle",
+            num(angles.closed_half_rad.to_degrees()),
+        );
+        line(
+            &mut s,
+            "chop_max_half_angle",
+            num(angles.max_half_rad.to_degrees()),
+        );
         line(&mut s, "chop_gear_module", num(ch.gear_module_mm));
         line(&mut s, "chop_gear_radius", num(ch.gear_pitch_radius_mm));
-        line(&mut s, "chop_gear_pressure_angle", num(ch.gear_pressure_angle_deg));
+        line(
+            &mut s,
+            "chop_gear_pressure_angle",
+            num(ch.gear_pressure_angle_deg),
+        );
         s.push_str("// Slider travel: its rack moves back by gear_radius * jaw angle (mm).\n");
-        line(&mut s, 
+        line(
+            &mut s,
             "chop_slider_closed",
             num(-ch.gear_pitch_radius_mm * angles.closed_half_rad),
         );
-        line(&mut s, 
+        line(
+            &mut s,
             "chop_slider_open",
             num(-ch.gear_pitch_radius_mm * angles.max_half_rad),
         );
@@ -920,7 +987,8 @@ impl HardwareParams {
         line(&mut s, "pj_jaw_offset", num(pj.jaw_offset_mm));
         line(&mut s, "pj_plate", num(pj.plate_thickness_mm));
         line(&mut s, "pj_grip_face", num(pj.dot_to_gripping_face_mm));
-        line(&mut s, 
+        line(
+            &mut s,
             "pj_dots",
             list(&Self::dot_positions_mm(
                 pj.jaw_offset_mm,
@@ -1041,9 +1109,15 @@ pub fn tool_toml(def: &ToolDefinition) -> String {
     });
     s.push_str(&format!("in_front_m = {}\n", vec3(def.hinge.in_front_m)));
     s.push_str("# Direction the closed jaws point (normalized on load).\n");
-    s.push_str(&format!("jaw_direction = {}\n", vec3(def.hinge.jaw_direction)));
+    s.push_str(&format!(
+        "jaw_direction = {}\n",
+        vec3(def.hinge.jaw_direction)
+    ));
     s.push_str("# Normal of the dot plane, pointing away from the camera (normalized on load; must be\n# perpendicular to jaw_direction).\n");
-    s.push_str(&format!("plane_normal = {}\n\n[jaws]\n", vec3(def.hinge.plane_normal)));
+    s.push_str(&format!(
+        "plane_normal = {}\n\n[jaws]\n",
+        vec3(def.hinge.plane_normal)
+    ));
     let j = &def.jaws;
     if def.kind == ToolKind::BareHand {
         s.push_str("# No jaws: the chopstick's numbers, which the format requires.\n");
@@ -1051,7 +1125,9 @@ pub fn tool_toml(def: &ToolDefinition) -> String {
     s.push_str(&format!("length_m = {}\n", num(j.length_m)));
     s.push_str("# Hinge axis to the jaw's near end, along the jaw.\n");
     s.push_str(&format!("offset_m = {}\n", num(j.offset_m)));
-    s.push_str("# Jaw centre plane to the dotted face (the dots sit this far towards the camera).\n");
+    s.push_str(
+        "# Jaw centre plane to the dotted face (the dots sit this far towards the camera).\n",
+    );
     s.push_str(&format!("half_thickness_m = {}\n", num(j.half_thickness_m)));
     s.push_str(match def.kind {
         ToolKind::ParallelJaw => {
@@ -1061,7 +1137,9 @@ pub fn tool_toml(def: &ToolDefinition) -> String {
     });
     s.push_str(&format!("half_width_m = {}\n", num(j.half_width_m)));
     s.push_str(match def.kind {
-        ToolKind::Chopstick => "# Widest opening the estimator searches (rad): at least the mechanical maximum.\n",
+        ToolKind::Chopstick => {
+            "# Widest opening the estimator searches (rad): at least the mechanical maximum.\n"
+        }
         ToolKind::ParallelJaw => "# Widest gap between the plates (m).\n",
         ToolKind::BareHand => "# No opening.\n",
     });
@@ -1089,7 +1167,10 @@ pub fn tool_toml(def: &ToolDefinition) -> String {
     s.push_str("# The tag lies in the jaw plane, facing the camera, printed \"up\" along the jaws, centred this\n# far behind the hinge.\n");
     s.push_str(&format!("behind_hinge_m = {}\n", num(m.behind_hinge_m)));
     s.push_str("# Printed face in front of the jaw centre plane (half the tag plate).\n");
-    s.push_str(&format!("face_offset_m = {}\n\n[cam_from_tip]\n", num(m.face_offset_m)));
+    s.push_str(&format!(
+        "face_offset_m = {}\n\n[cam_from_tip]\n",
+        num(m.face_offset_m)
+    ));
     s.push_str(match def.kind {
         ToolKind::Chopstick => {
             "# Tip of the closed jaws: hinge + jaw_direction * (offset + length); z along the jaws.\n"
@@ -1151,14 +1232,15 @@ mod tests {
             );
         }
         // The built-in definitions the simulator and estimator use are these files.
-        for kind in [ToolKind::Chopstick, ToolKind::ParallelJaw, ToolKind::BareHand] {
+        for kind in [
+            ToolKind::Chopstick,
+            ToolKind::ParallelJaw,
+            ToolKind::BareHand,
+        ] {
             assert_eq!(
                 ToolDefinition::builtin(kind).unwrap(),
-                ToolDefinition::parse(
-                    &tool_toml(&params().tool_definition(kind)),
-                    Path::new("x")
-                )
-                .unwrap()
+                ToolDefinition::parse(&tool_toml(&params().tool_definition(kind)), Path::new("x"))
+                    .unwrap()
             );
         }
     }
@@ -1177,7 +1259,10 @@ mod tests {
         let shift = b.cam_from_tip().translation.vector - a.cam_from_tip().translation.vector;
         let expected = base.jaw_direction() * 0.020;
         // Exactly along the jaws by the added length, to the files' 1e-9 m rounding.
-        assert!((shift - expected).norm() < 2e-9, "{shift:?} vs {expected:?}");
+        assert!(
+            (shift - expected).norm() < 2e-9,
+            "{shift:?} vs {expected:?}"
+        );
         assert_eq!(a.cam_from_tip.rotation, b.cam_from_tip.rotation);
         assert_eq!(a.hinge, b.hinge);
         assert!((b.dots.pitch_m - 0.2 / 9.0).abs() < 1e-9);

@@ -17,8 +17,16 @@ fn hat_mount_matches_the_simulated_hat_marker() {
     assert_eq!(p.hat.tag_id, HAT_MARKER_ID);
     assert!((p.hat.tag_size_mm / 1000.0 - HAT_MARKER_SIZE_M).abs() < 1e-12);
     let t = head_from_marker();
-    let expected = Vector3::new(0.0, -p.hat.tag_above_camera_mm, p.hat.tag_ahead_of_camera_mm) / 1000.0;
-    assert!((t.translation.vector - expected).norm() < 1e-12, "{:?}", t.translation);
+    let expected = Vector3::new(
+        0.0,
+        -p.hat.tag_above_camera_mm,
+        p.hat.tag_ahead_of_camera_mm,
+    ) / 1000.0;
+    assert!(
+        (t.translation.vector - expected).norm() < 1e-12,
+        "{:?}",
+        t.translation
+    );
     // Facing forward (marker z along the head's z), printed up pointing up (marker y = -head y).
     let z = t.rotation * Vector3::z();
     let y = t.rotation * Vector3::y();
