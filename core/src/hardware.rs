@@ -815,134 +815,142 @@ impl HardwareParams {
     fn derived_scad(&self) -> String {
         let mut s = String::new();
         let p = &self.printer;
-        line(&mut s, "printer_name", format!("{:?}", p.name));
-        line(&mut s, "printer_build_volume", vec3(p.build_volume_mm));
+        line(&mut s, "printer_name", &format!("{:?}", p.name));
+        line(&mut s, "printer_build_volume", &vec3(p.build_volume_mm));
         line(
             &mut s,
             "bearing_seat_allowance",
-            num(p.bearing_seat_allowance_mm),
+            &num(p.bearing_seat_allowance_mm),
         );
-        line(&mut s, "hole_allowance", num(p.hole_allowance_mm));
-        line(&mut s, "sliding_clearance", num(p.sliding_clearance_mm));
-        line(&mut s, "camera_clearance", num(p.camera_clearance_mm));
-        line(&mut s, "$fn", p.circle_segments.to_string());
+        line(&mut s, "hole_allowance", &num(p.hole_allowance_mm));
+        line(&mut s, "sliding_clearance", &num(p.sliding_clearance_mm));
+        line(&mut s, "camera_clearance", &num(p.camera_clearance_mm));
+        line(&mut s, "$fn", &p.circle_segments.to_string());
 
         let c = &self.camera;
-        line(&mut s, "cam_width", num(c.width_mm));
-        line(&mut s, "cam_height", num(c.height_mm));
-        line(&mut s, "cam_depth", num(c.depth_mm));
-        line(&mut s, "cam_flat_depth", num(c.flat_depth_mm));
-        line(&mut s, "cam_corner_radius", num(c.corner_radius_mm));
+        line(&mut s, "cam_width", &num(c.width_mm));
+        line(&mut s, "cam_height", &num(c.height_mm));
+        line(&mut s, "cam_depth", &num(c.depth_mm));
+        line(&mut s, "cam_flat_depth", &num(c.flat_depth_mm));
+        line(&mut s, "cam_corner_radius", &num(c.corner_radius_mm));
         line(
             &mut s,
             "cam_lens_below_top",
-            num(c.lens_center_below_top_mm),
+            &num(c.lens_center_below_top_mm),
         );
         line(
             &mut s,
             "cam_pupil_ahead_of_mid",
-            num(c.pupil_ahead_of_mid_mm),
+            &num(c.pupil_ahead_of_mid_mm),
         );
-        line(&mut s, "cam_lens_diameter", num(c.lens_diameter_mm));
+        line(&mut s, "cam_lens_diameter", &num(c.lens_diameter_mm));
         line(
             &mut s,
             "cam_tripod_screw_d",
-            num(c.tripod_screw_diameter_mm),
+            &num(c.tripod_screw_diameter_mm),
         );
         line(
             &mut s,
             "cam_tripod_head_d",
-            num(c.tripod_screw_head_diameter_mm),
+            &num(c.tripod_screw_head_diameter_mm),
         );
         line(
             &mut s,
             "cam_tripod_head_h",
-            num(c.tripod_screw_head_height_mm),
+            &num(c.tripod_screw_head_height_mm),
         );
         let face = -c.pupil_ahead_of_mid_mm + c.flat_depth_mm / 2.0;
         s.push_str("// Camera body in the front-lens frame: front face z, top y, bottom y.\n");
-        line(&mut s, "cam_front_face_z", num(face));
-        line(&mut s, "cam_mid_z", num(-c.pupil_ahead_of_mid_mm));
-        line(&mut s, "cam_top_y", num(-c.lens_center_below_top_mm));
+        line(&mut s, "cam_front_face_z", &num(face));
+        line(&mut s, "cam_mid_z", &num(-c.pupil_ahead_of_mid_mm));
+        line(&mut s, "cam_top_y", &num(-c.lens_center_below_top_mm));
         line(
             &mut s,
             "cam_bottom_y",
-            num(c.height_mm - c.lens_center_below_top_mm),
+            &num(c.height_mm - c.lens_center_below_top_mm),
         );
 
         let q = &self.quick_release;
-        line(&mut s, "qr_width", num(q.width_mm));
-        line(&mut s, "qr_flank_angle", num(q.flank_angle_deg));
-        line(&mut s, "qr_thickness", num(q.thickness_mm));
-        line(&mut s, "qr_edge", num(q.edge_mm));
-        line(&mut s, "qr_flank_height", num(q.flank_height_mm));
-        line(&mut s, "qr_length", num(q.length_mm));
-        line(&mut s, "qr_holder_wall", num(q.holder_wall_mm));
-        line(&mut s, "qr_clamp_floor", num(q.clamp_floor_mm));
-        line(&mut s, "qr_clamp_side_wall", num(q.clamp_side_wall_mm));
-        line(&mut s, "qr_clamp_lip_gap", num(q.clamp_lip_gap_mm));
-        line(&mut s, "qr_lock_screw_d", num(q.lock_screw_diameter_mm));
-        line(&mut s, "qr_lock_nut_af", num(q.lock_nut_across_flats_mm));
-        line(&mut s, "qr_lock_nut_h", num(q.lock_nut_height_mm));
-        line(&mut s, "qr_stop_screw_d", num(q.stop_screw_diameter_mm));
-        line(&mut s, "qr_stop_head_d", num(q.stop_screw_head_diameter_mm));
-        line(&mut s, "qr_stop_head_h", num(q.stop_screw_head_height_mm));
-        line(&mut s, "qr_stop_from_center", num(q.stop_from_center_mm));
-        line(&mut s, "qr_plate_profile", points(&self.plate_profile_mm()));
+        line(&mut s, "qr_width", &num(q.width_mm));
+        line(&mut s, "qr_flank_angle", &num(q.flank_angle_deg));
+        line(&mut s, "qr_thickness", &num(q.thickness_mm));
+        line(&mut s, "qr_edge", &num(q.edge_mm));
+        line(&mut s, "qr_flank_height", &num(q.flank_height_mm));
+        line(&mut s, "qr_length", &num(q.length_mm));
+        line(&mut s, "qr_holder_wall", &num(q.holder_wall_mm));
+        line(&mut s, "qr_clamp_floor", &num(q.clamp_floor_mm));
+        line(&mut s, "qr_clamp_side_wall", &num(q.clamp_side_wall_mm));
+        line(&mut s, "qr_clamp_lip_gap", &num(q.clamp_lip_gap_mm));
+        line(&mut s, "qr_lock_screw_d", &num(q.lock_screw_diameter_mm));
+        line(&mut s, "qr_lock_nut_af", &num(q.lock_nut_across_flats_mm));
+        line(&mut s, "qr_lock_nut_h", &num(q.lock_nut_height_mm));
+        line(&mut s, "qr_stop_screw_d", &num(q.stop_screw_diameter_mm));
+        line(
+            &mut s,
+            "qr_stop_head_d",
+            &num(q.stop_screw_head_diameter_mm),
+        );
+        line(&mut s, "qr_stop_head_h", &num(q.stop_screw_head_height_mm));
+        line(&mut s, "qr_stop_from_center", &num(q.stop_from_center_mm));
+        line(
+            &mut s,
+            "qr_plate_profile",
+            &points(&self.plate_profile_mm()),
+        );
         line(
             &mut s,
             "qr_channel_profile",
-            points(&self.channel_profile_mm()),
+            &points(&self.channel_profile_mm()),
         );
-        line(&mut s, "q_in_front", vec3(self.q_in_front_mm().into()));
+        line(&mut s, "q_in_front", &vec3(self.q_in_front_mm().into()));
 
         let m = &self.tool_mount;
-        line(&mut s, "hinge_in_q", vec3(m.hinge_in_q_mm));
+        line(&mut s, "hinge_in_q", &vec3(m.hinge_in_q_mm));
         line(
             &mut s,
             "hinge_in_front",
-            vec3(self.hinge_in_front_mm().into()),
+            &vec3(self.hinge_in_front_mm().into()),
         );
         let r = self.front_from_hinge_rotation();
         let h = Vector3::from(m.hinge_in_q_mm);
         line(
             &mut s,
             "q_from_hinge",
-            format!(
+            &format!(
                 "[{}, {}, {}, [0, 0, 0, 1]]",
                 row4([r[(0, 0)], r[(0, 1)], r[(0, 2)], h.x]),
                 row4([r[(1, 0)], r[(1, 1)], r[(1, 2)], h.y]),
                 row4([r[(2, 0)], r[(2, 1)], r[(2, 2)], h.z]),
             ),
         );
-        line(&mut s, "tag_size", num(m.tag_size_mm));
-        line(&mut s, "tag_quiet_zone", num(m.tag_quiet_zone_mm));
-        line(&mut s, "tag_behind_hinge", num(m.tag_behind_hinge_mm));
-        line(&mut s, "tag_plate", num(m.tag_plate_mm));
+        line(&mut s, "tag_size", &num(m.tag_size_mm));
+        line(&mut s, "tag_quiet_zone", &num(m.tag_quiet_zone_mm));
+        line(&mut s, "tag_behind_hinge", &num(m.tag_behind_hinge_mm));
+        line(&mut s, "tag_plate", &num(m.tag_plate_mm));
 
         let d = &self.dots;
-        line(&mut s, "dot_radius", num(d.radius_mm));
-        line(&mut s, "dot_recess", num(d.recess_mm));
+        line(&mut s, "dot_radius", &num(d.radius_mm));
+        line(&mut s, "dot_recess", &num(d.recess_mm));
 
         let b = &self.bearing;
-        line(&mut s, "bearing_bore", num(b.bore_mm));
-        line(&mut s, "bearing_od", num(b.outer_diameter_mm));
-        line(&mut s, "bearing_width", num(b.width_mm));
-        line(&mut s, "washer", num(b.washer_mm));
+        line(&mut s, "bearing_bore", &num(b.bore_mm));
+        line(&mut s, "bearing_od", &num(b.outer_diameter_mm));
+        line(&mut s, "bearing_width", &num(b.width_mm));
+        line(&mut s, "washer", &num(b.washer_mm));
 
         let ch = &self.chopstick;
         let angles = self.chopstick_angles();
-        line(&mut s, "chop_jaw_length", num(ch.jaw_length_mm));
-        line(&mut s, "chop_jaw_offset", num(ch.jaw_offset_mm));
-        line(&mut s, "chop_brim", num(ch.brim_thickness_mm));
-        line(&mut s, "chop_grip_face", num(ch.dot_to_gripping_face_mm));
-        line(&mut s, "chop_brim_outer", num(ch.brim_outer_mm));
-        line(&mut s, "chop_rib_height", num(ch.rib_height_mm));
-        line(&mut s, "chop_rib_width", num(ch.rib_width_mm));
+        line(&mut s, "chop_jaw_length", &num(ch.jaw_length_mm));
+        line(&mut s, "chop_jaw_offset", &num(ch.jaw_offset_mm));
+        line(&mut s, "chop_brim", &num(ch.brim_thickness_mm));
+        line(&mut s, "chop_grip_face", &num(ch.dot_to_gripping_face_mm));
+        line(&mut s, "chop_brim_outer", &num(ch.brim_outer_mm));
+        line(&mut s, "chop_rib_height", &num(ch.rib_height_mm));
+        line(&mut s, "chop_rib_width", &num(ch.rib_width_mm));
         line(
             &mut s,
             "chop_dots",
-            list(&Self::dot_positions_mm(
+            &list(&Self::dot_positions_mm(
                 ch.jaw_offset_mm,
                 ch.jaw_length_mm,
                 ch.dot_count,
@@ -951,96 +959,100 @@ impl HardwareParams {
         line(
             &mut s,
             "chop_closed_half_angle",
-            num(angles.closed_half_rad.to_degrees()),
+            &num(angles.closed_half_rad.to_degrees()),
         );
         line(
             &mut s,
             "chop_max_half_angle",
-            num(angles.max_half_rad.to_degrees()),
+            &num(angles.max_half_rad.to_degrees()),
         );
-        line(&mut s, "chop_gear_module", num(ch.gear_module_mm));
-        line(&mut s, "chop_gear_radius", num(ch.gear_pitch_radius_mm));
+        line(&mut s, "chop_gear_module", &num(ch.gear_module_mm));
+        line(&mut s, "chop_gear_radius", &num(ch.gear_pitch_radius_mm));
         line(
             &mut s,
             "chop_gear_pressure_angle",
-            num(ch.gear_pressure_angle_deg),
+            &num(ch.gear_pressure_angle_deg),
         );
         s.push_str("// Slider travel: its rack moves back by gear_radius * jaw angle (mm).\n");
         line(
             &mut s,
             "chop_slider_closed",
-            num(-ch.gear_pitch_radius_mm * angles.closed_half_rad),
+            &num(-ch.gear_pitch_radius_mm * angles.closed_half_rad),
         );
         line(
             &mut s,
             "chop_slider_open",
-            num(-ch.gear_pitch_radius_mm * angles.max_half_rad),
+            &num(-ch.gear_pitch_radius_mm * angles.max_half_rad),
         );
-        line(&mut s, "chop_grip_length", num(ch.grip_length_mm));
-        line(&mut s, "chop_grip_angle", num(ch.grip_angle_deg));
-        line(&mut s, "chop_grip_width", num(ch.grip_width_mm));
-        line(&mut s, "chop_grip_depth", num(ch.grip_depth_mm));
-        line(&mut s, "chop_strap_width", num(ch.strap_width_mm));
+        line(&mut s, "chop_grip_length", &num(ch.grip_length_mm));
+        line(&mut s, "chop_grip_angle", &num(ch.grip_angle_deg));
+        line(&mut s, "chop_grip_width", &num(ch.grip_width_mm));
+        line(&mut s, "chop_grip_depth", &num(ch.grip_depth_mm));
+        line(&mut s, "chop_strap_width", &num(ch.strap_width_mm));
 
         let pj = &self.parallel_jaw;
-        line(&mut s, "pj_jaw_length", num(pj.jaw_length_mm));
-        line(&mut s, "pj_jaw_offset", num(pj.jaw_offset_mm));
-        line(&mut s, "pj_plate", num(pj.plate_thickness_mm));
-        line(&mut s, "pj_grip_face", num(pj.dot_to_gripping_face_mm));
+        line(&mut s, "pj_jaw_length", &num(pj.jaw_length_mm));
+        line(&mut s, "pj_jaw_offset", &num(pj.jaw_offset_mm));
+        line(&mut s, "pj_plate", &num(pj.plate_thickness_mm));
+        line(&mut s, "pj_grip_face", &num(pj.dot_to_gripping_face_mm));
         line(
             &mut s,
             "pj_dots",
-            list(&Self::dot_positions_mm(
+            &list(&Self::dot_positions_mm(
                 pj.jaw_offset_mm,
                 pj.jaw_length_mm,
                 pj.dot_count,
             )),
         );
-        line(&mut s, "pj_max_gap", num(pj.max_gap_mm));
-        line(&mut s, "pj_finger_height", num(pj.finger_height_mm));
-        line(&mut s, "pj_finger_width", num(pj.finger_width_mm));
-        line(&mut s, "pj_rod_d", num(pj.rod_diameter_mm));
-        line(&mut s, "pj_rod_length", num(pj.rod_length_mm));
-        line(&mut s, "pj_rod_spacing", num(pj.rod_spacing_mm));
-        line(&mut s, "pj_carriage_length", num(pj.carriage_length_mm));
+        line(&mut s, "pj_max_gap", &num(pj.max_gap_mm));
+        line(&mut s, "pj_finger_height", &num(pj.finger_height_mm));
+        line(&mut s, "pj_finger_width", &num(pj.finger_width_mm));
+        line(&mut s, "pj_rod_d", &num(pj.rod_diameter_mm));
+        line(&mut s, "pj_rod_length", &num(pj.rod_length_mm));
+        line(&mut s, "pj_rod_spacing", &num(pj.rod_spacing_mm));
+        line(&mut s, "pj_carriage_length", &num(pj.carriage_length_mm));
 
         let cu = &self.cuff;
-        line(&mut s, "cuff_wrist_radius", num(cu.wrist_radius_mm));
-        line(&mut s, "cuff_saddle_length", num(cu.saddle_length_mm));
-        line(&mut s, "cuff_saddle_thickness", num(cu.saddle_thickness_mm));
-        line(&mut s, "cuff_saddle_arc", num(cu.saddle_arc_deg));
-        line(&mut s, "cuff_strap_width", num(cu.strap_width_mm));
+        line(&mut s, "cuff_wrist_radius", &num(cu.wrist_radius_mm));
+        line(&mut s, "cuff_saddle_length", &num(cu.saddle_length_mm));
+        line(
+            &mut s,
+            "cuff_saddle_thickness",
+            &num(cu.saddle_thickness_mm),
+        );
+        line(&mut s, "cuff_saddle_arc", &num(cu.saddle_arc_deg));
+        line(&mut s, "cuff_strap_width", &num(cu.strap_width_mm));
 
         let ha = &self.hat;
-        line(&mut s, "go3_width", num(ha.go3_width_mm));
-        line(&mut s, "go3_height", num(ha.go3_height_mm));
-        line(&mut s, "go3_depth", num(ha.go3_depth_mm));
-        line(&mut s, "go3_lens_below_top", num(ha.go3_lens_below_top_mm));
-        line(&mut s, "hat_tag_size", num(ha.tag_size_mm));
-        line(&mut s, "hat_tag_quiet_zone", num(ha.tag_quiet_zone_mm));
-        line(&mut s, "hat_tag_above", num(ha.tag_above_camera_mm));
-        line(&mut s, "hat_tag_ahead", num(ha.tag_ahead_of_camera_mm));
-        line(&mut s, "hat_plate", num(ha.plate_thickness_mm));
-        line(&mut s, "hat_strap_width", num(ha.strap_width_mm));
+        line(&mut s, "go3_width", &num(ha.go3_width_mm));
+        line(&mut s, "go3_height", &num(ha.go3_height_mm));
+        line(&mut s, "go3_depth", &num(ha.go3_depth_mm));
+        line(&mut s, "go3_lens_below_top", &num(ha.go3_lens_below_top_mm));
+        line(&mut s, "hat_tag_size", &num(ha.tag_size_mm));
+        line(&mut s, "hat_tag_quiet_zone", &num(ha.tag_quiet_zone_mm));
+        line(&mut s, "hat_tag_above", &num(ha.tag_above_camera_mm));
+        line(&mut s, "hat_tag_ahead", &num(ha.tag_ahead_of_camera_mm));
+        line(&mut s, "hat_plate", &num(ha.plate_thickness_mm));
+        line(&mut s, "hat_strap_width", &num(ha.strap_width_mm));
 
         let f = &self.flange;
-        line(&mut s, "flange_pcd", num(f.pitch_circle_mm));
-        line(&mut s, "flange_screw_d", num(f.screw_diameter_mm));
-        line(&mut s, "flange_head_d", num(f.screw_head_diameter_mm));
-        line(&mut s, "flange_head_h", num(f.screw_head_height_mm));
-        line(&mut s, "flange_screws", f.screw_count.to_string());
-        line(&mut s, "flange_centring_d", num(f.centring_diameter_mm));
-        line(&mut s, "flange_centring_depth", num(f.centring_depth_mm));
-        line(&mut s, "flange_dowel_d", num(f.dowel_diameter_mm));
-        line(&mut s, "flange_dowel_angle", num(f.dowel_angle_deg));
-        line(&mut s, "flange_disc_d", num(f.disc_diameter_mm));
-        line(&mut s, "flange_disc_h", num(f.disc_thickness_mm));
+        line(&mut s, "flange_pcd", &num(f.pitch_circle_mm));
+        line(&mut s, "flange_screw_d", &num(f.screw_diameter_mm));
+        line(&mut s, "flange_head_d", &num(f.screw_head_diameter_mm));
+        line(&mut s, "flange_head_h", &num(f.screw_head_height_mm));
+        line(&mut s, "flange_screws", &f.screw_count.to_string());
+        line(&mut s, "flange_centring_d", &num(f.centring_diameter_mm));
+        line(&mut s, "flange_centring_depth", &num(f.centring_depth_mm));
+        line(&mut s, "flange_dowel_d", &num(f.dowel_diameter_mm));
+        line(&mut s, "flange_dowel_angle", &num(f.dowel_angle_deg));
+        line(&mut s, "flange_disc_d", &num(f.disc_diameter_mm));
+        line(&mut s, "flange_disc_h", &num(f.disc_thickness_mm));
         s
     }
 }
 
 /// One `name = value;` line of OpenSCAD.
-fn line(s: &mut String, name: &str, value: String) {
+fn line(s: &mut String, name: &str, value: &str) {
     s.push_str(&format!("{name} = {value};\n"));
 }
 
