@@ -768,7 +768,7 @@ impl PartCheck {
                 r.bad_edges, r.flipped_edges
             ));
         }
-        if !(r.volume_mm3 > 0.0) {
+        if r.volume_mm3.is_nan() || r.volume_mm3 <= 0.0 {
             out.push(format!("enclosed volume {:.1} mm³", r.volume_mm3));
         }
         if !r.fits(params.printer.build_volume_mm) {
