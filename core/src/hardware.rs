@@ -391,20 +391,13 @@ impl HardwareParams {
 
     /// Parse and validate parameter text; `path` names it in errors.
     pub fn parse(text: &str, path: &Path) -> Result<Self> {
-        let de = toml::Deserializer::parse(text).map_err(|e| CoreError::Parse {
-            path: path.to_path_buf(),
-            format: "TOML",
-            field: ".".into(),
-            message: e.to_string(),
-            fix: "fix the syntax of hardware/params.toml".into(),
-        })?;
-        let p: Self = serde_path_to_error::deserialize(de).map_err(|e| CoreError::Parse {
-            path: path.to_path_buf(),
-            format: "TOML hardware parameters",
-            field: e.path().to_string(),
-            message: e.inner().to_string(),
-            fix: "compare with hardware/params.toml in the repository".into(),
-        })?;
+        let p: Self = crate::io::parse_toml(
+            text,
+            path,
+            "TOML hardware parameters",
+            "fix the syntax of hardware/params.toml",
+            "compare with hardware/params.toml in the repository",
+        )?;
         p.validate().map_err(|e| e.at_path(path))?;
         Ok(p)
     }
