@@ -1052,7 +1052,7 @@ fn line(s: &mut String, name: &str, value: &str) {
 /// A number as written to generated files: rounded to [`TOOL_DECIMALS`] decimals, trailing
 /// zeros dropped, at least one decimal, no negative zero.
 fn num(v: f64) -> String {
-    let mut s = format!("{v:.prec$}", prec = TOOL_DECIMALS);
+    let mut s = format!("{v:.TOOL_DECIMALS$}");
     if s.contains('.') {
         while s.ends_with('0') {
             s.pop();
