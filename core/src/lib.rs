@@ -7,6 +7,8 @@
 //! - [`artifact`]: the unit calibration set, with [`kalibr`] and [`basalt`] exports.
 //! - [`layout`]: `session.toml` and the prepared-episode folder layout.
 //! - [`io`]: atomic writes, never-overwritten dated folders, hashes.
+//! - [`tool`]: tool definitions; [`hardware`]: the hardware parameter file and what is
+//!   generated from it (the OpenSCAD parameters, the tool definitions).
 //! - [`audio`]: WAV decoding and resampling; [`fit`]: the robust line fit; [`rig`]: the QR-clock
 //!   rig's contract.
 //!
@@ -20,6 +22,7 @@ pub mod camera;
 pub mod error;
 pub mod fit;
 pub mod geometry;
+pub mod hardware;
 pub mod imu;
 pub mod io;
 pub mod kalibr;
