@@ -204,10 +204,14 @@ impl Default for LocalizerOptions {
             // P3P on 12 consistent matches of one candidate window is a hypothesis worth
             // densifying; it is never output on its own.
             relocalization_hypothesis_inliers: 12,
+            // Window, then the best-viewing keyframes twice: the third round rarely adds more.
             relocalization_guided_rounds: 3,
+            // A right pose from elsewhere matched inliers in most predicted cells on the photo
+            // room's revisit; one photo copy covers a few of an 8 × 8 grid.
             min_view_support: 0.3,
             // 8 × 8 cells of 120 px at 960 px: a photo or a tile panel covers a few of them.
             support_grid: 8,
+            // A cell with fewer predicted landmarks is too thin to expect an inlier in.
             support_min_predicted: 3,
             // A true pose explains most tracked correspondences; a wrong one a minority.
             min_inlier_ratio: 0.5,
@@ -242,8 +246,8 @@ impl Default for LocalizerOptions {
             // Every 4th frame (~0.13 s at 30 Hz): a view that comes into the map is found within
             // a few frames, and the backward pass fills the frames before it.
             relocalization_interval: 4,
-            // One second of every frame (~30 attempts at 30 Hz, ~50 ms each at 960 px): the
-            // cost of starting an episode, paid once.
+            // One second of every frame (~30 attempts at 30 Hz; 50-270 ms each measured at
+            // 320 px on a loaded machine): the cost of starting an episode, paid once.
             relocalization_eager_s: 1.0,
             klt: KltOptions {
                 // 15 px is enough between consecutive frames and ~2× cheaper than 21.
