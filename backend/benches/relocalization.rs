@@ -17,7 +17,7 @@
 //! descriptors in map and query, a 45-inlier hypothesis, one view-blind densification round,
 //! relocalization every 4th frame after two failures, no view-support rule).
 
-#![allow(clippy::unwrap_used, clippy::expect_used, missing_docs)]
+#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
 use std::time::Instant;
 
