@@ -318,11 +318,10 @@ fn write_wrist(
             class.as_str(),
             row.node.support.label()
         );
-        let opening = w.opening.as_ref().and_then(|series| {
-            openings
-                .get(&row.t_camera.to_bits())
-                .map(|o| (series.unit, o))
-        });
+        let opening = w
+            .opening
+            .as_ref()
+            .and_then(|series| opening_at(row.t_camera).map(|o| (series.unit, o)));
         match opening {
             Some((unit, o)) => {
                 let value = o.value.map(|v| format!("{v:.6}")).unwrap_or_default();
