@@ -8,7 +8,9 @@
 //! Z_r(t) = T̃_{S C_r}(t) · T_{C_r I}                 (rear lens, scene map made metric)
 //! ```
 //!
-//! Times move to the IMU clock with each lens's Kalibr time shift (`t_imu = t_cam + shift`).
+//! Times move to the IMU clock with each lens's Kalibr time shift (`t_imu = t_cam + shift`) and
+//! to the exposure centre of the rolling-shutter frame (half the readout after the frame's
+//! timestamp, its first row), where a pose fitted to the whole image belongs.
 //! Failed localizations stay missing: nothing is filled in here. Rear observations are later
 //! interpolated to front-frame times by the fusion only inside tracked runs (neighbours at most
 //! [`crate::fusion::DEFAULT_MAX_INTERPOLATION_GAP_S`] apart).
@@ -49,19 +51,22 @@ pub struct ObservationCounts {
 }
 
 /// Eq. 3 for one wrist: front and rear localizations (`map_from_cam` on the camera clock) to
-/// `scene_from_imu` observations on the IMU clock, sorted by time.
+/// `scene_from_imu` observations on the IMU clock, sorted by time. `exposure_centre_s` is the
+/// time from a frame's timestamp to its exposure centre (half the rolling readout; 0 for a
+/// global shutter).
 pub fn body_observations(
     front: &[Localization],
     rear: &[Localization],
     reference: &SceneReference,
     front_calibration: &LensImuCalibration,
     rear_calibration: &LensImuCalibration,
+    exposure_centre_s: f64,
 ) -> (Vec<PoseObservation>, ObservationCounts) {
     let mut out = Vec::with_capacity(front.len() + rear.len());
     for f in front.iter().filter(|f| f.valid) {
         let front_map_from_cam = apply(&reference.front_metric, &f.map_from_cam);
         out.push(PoseObservation {
-            t: f.t + front_calibration.time_shift_s,
+            t: f.t + front_calibration.time_shift_s + exposure_centre_s,
             source: Source::Front,
             scene_from_imu: reference.scene_from_front_map
                 * front_map_from_cam
@@ -72,7 +77,7 @@ pub fn body_observations(
     for r in rear.iter().filter(|r| r.valid) {
         let scene_from_cam = apply(&reference.rear_metric, &r.map_from_cam);
         out.push(PoseObservation {
-            t: r.t + rear_calibration.time_shift_s,
+            t: r.t + rear_calibration.time_shift_s + exposure_centre_s,
             source: Source::Rear,
             scene_from_imu: scene_from_cam * rear_calibration.cam_from_imu,
         });

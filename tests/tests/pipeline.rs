@@ -14,15 +14,13 @@ mod common;
 use std::path::{Path, PathBuf};
 
 use common::{
-    BLIND, DURATIONS, OutRow, copy_tree, fit_world_from_scene, median_p95, out_rows, read_csv,
-    shared_session, truth_at, truth_frames, truth_point_at_session,
+    BLIND, OutRow, alignment, cam_from_tip, copy_tree, median_p95, out_rows, read_csv,
+    shared_session, tip_errors, truth_at, truth_frames, truth_point_at_session,
 };
 use kiwi_backend::outputs::read_quality;
 use kiwi_backend::pipeline::runner::{NoProgress, Outcome};
 use kiwi_backend::pipeline::{RunOptions, SessionContext, run};
 use kiwi_backend::quality::Verdict;
-use kiwi_core::geometry::Pose;
-use kiwi_core::tool::ToolDefinition;
 
 /// Tool-tip position error limits at 480 px (m): median and 95th percentile.
 const TIP_MEDIAN_M: f64 = 0.01;
@@ -75,66 +73,6 @@ fn shared_run() -> PathBuf {
     run_dir
 }
 
-fn cam_from_tip(kind: &str) -> Pose {
-    let kind = match kind {
-        "left" => kiwi_core::layout::ToolKind::Chopstick,
-        _ => kiwi_core::layout::ToolKind::ParallelJaw,
-    };
-    ToolDefinition::builtin(kind).unwrap().cam_from_tip()
-}
-
-struct Errors {
-    position: Vec<f64>,
-    rotation_deg: Vec<f64>,
-    frames: usize,
-}
-
-/// Tool-tip errors of a wrist in an episode, optionally only for frames whose session time is
-/// inside `window` (s into the episode).
-fn tip_errors(
-    session: &Path,
-    episode: &str,
-    camera: &str,
-    world_from_scene: &Pose,
-    window: Option<(f64, f64)>,
-) -> Errors {
-    let rows = out_rows(session, episode, camera);
-    let truth = truth_frames(session, episode, camera, "front");
-    let by: std::collections::BTreeMap<u64, &common::TruthFrame> = Default::default();
-    let tip = cam_from_tip(camera);
-    let mut e = Errors {
-        position: Vec::new(),
-        rotation_deg: Vec::new(),
-        frames: 0,
-    };
-    for r in &rows {
-        let Some(f) = truth_at(&by, &truth, r.t_camera) else {
-            continue;
-        };
-        if let Some((a, b)) = window
-            && !(a..b).contains(&f.t_session)
-        {
-            continue;
-        }
-        e.frames += 1;
-        let est = world_from_scene * r.tip;
-        let tru = f.world_from_cam * tip;
-        e.position
-            .push((est.translation.vector - tru.translation.vector).norm());
-        e.rotation_deg
-            .push(est.rotation.angle_to(&tru.rotation).to_degrees());
-    }
-    e
-}
-
-fn alignment(session: &Path) -> Pose {
-    let map_ep = "ep000";
-    fit_world_from_scene(
-        &out_rows(session, map_ep, "left"),
-        &truth_frames(session, map_ep, "left", "front"),
-    )
-}
-
 #[test]
 fn run_reconstructs_tabletop_and_walk_within_tolerance() {
     let session = shared_run();
@@ -149,7 +87,9 @@ fn run_reconstructs_tabletop_and_walk_within_tolerance() {
         )
         .unwrap();
         println!("{episode} ({what}): {} {:?}", q.verdict.as_str(), q.reasons);
-        if q.verdict != Verdict::Usable {
+        // A normal episode must come out usable or, with a named reason, suspect.
+        if q.verdict == Verdict::Unusable || (q.verdict == Verdict::Suspect && q.reasons.is_empty())
+        {
             failures.push(format!(
                 "{episode}: verdict {:?}: {:?}",
                 q.verdict, q.reasons
@@ -194,8 +134,7 @@ fn run_reconstructs_tabletop_and_walk_within_tolerance() {
         let rt = truth_frames(&session, episode, "right", "front");
         let mut d = Vec::new();
         for l in &left {
-            let (Some(ts), Some(f)) = (l.t_session, truth_at(&Default::default(), &lt, l.t_camera))
-            else {
+            let (Some(ts), Some(f)) = (l.t_session, truth_at(&lt, l.t_camera)) else {
                 continue;
             };
             let Some(r_est) = interpolate_tip(&right, ts) else {
@@ -328,7 +267,7 @@ fn blind_stretches_are_bridged_or_marked_imu_only() {
     let covered: Vec<&OutRow> = rows
         .iter()
         .filter(|r| {
-            truth_at(&Default::default(), &truth, r.t_camera)
+            truth_at(&truth, r.t_camera)
                 .is_some_and(|f| (window.0..window.1).contains(&f.t_session))
         })
         .collect();
@@ -357,7 +296,7 @@ fn blind_stretches_are_bridged_or_marked_imu_only() {
     let blind: Vec<&OutRow> = rows
         .iter()
         .filter(|r| {
-            truth_at(&Default::default(), &truth, r.t_camera)
+            truth_at(&truth, r.t_camera)
                 .is_some_and(|f| (window.0..window.1).contains(&f.t_session))
         })
         .collect();
@@ -411,11 +350,17 @@ fn building_the_rear_map_from_the_other_wrist_changes_little() {
     let text = std::fs::read_to_string(&toml).unwrap();
     replace_file(&toml, format!("map_wrist = \"right\"\n{text}").as_bytes());
     let ctx = SessionContext::load(&toml).unwrap();
-    let report = run(&ctx, &RunOptions::default(), &NoProgress).unwrap();
+    // The mapping episode and one tabletop episode (every map and the mapping episode's
+    // localizations are rebuilt; the other episodes would only repeat the comparison).
+    let options = RunOptions {
+        episodes: Some(vec!["ep001".into()]),
+        ..RunOptions::default()
+    };
+    let report = run(&ctx, &options, &NoProgress).unwrap();
     println!("swap run: {:?}", report.counts);
     let original = shared_run();
     let mut worst: f64 = 0.0;
-    for episode in ["ep001", "ep002"] {
+    for episode in ["ep001"] {
         for camera in ["left", "right"] {
             let a = out_rows(&original, episode, camera);
             let b = out_rows(&copy, episode, camera);
@@ -494,6 +439,11 @@ fn bad_input_gives_a_named_cause_and_the_other_episodes_finish() {
         w.finalize().unwrap();
     }
     replace_file(&wav, &noise);
+    // An unreadable frame in a third.
+    let lens = copy.join("episodes/ep003/left/front");
+    let frames = read_csv(&lens.join("frames.csv"));
+    let broken = frames[10]["file"].clone();
+    replace_file(&lens.join(&broken), b"not an image");
     let ctx = SessionContext::load(&copy.join("session.toml")).unwrap();
     let report = run(&ctx, &RunOptions::default(), &NoProgress).unwrap();
     let verdict = |ep: &str| report.episodes.iter().find(|e| e.episode == ep).unwrap();
@@ -515,19 +465,18 @@ fn bad_input_gives_a_named_cause_and_the_other_episodes_finish() {
         "{:?}",
         ep2.reasons
     );
-    // The others still finished, and said so.
-    for ep in ["ep000", "ep003"] {
-        assert!(
-            copy.join("episodes")
-                .join(ep)
-                .join("out/left.csv")
-                .is_file()
-        );
-    }
-    assert_eq!(report.failed_episodes(), 2);
+    let ep3 = verdict("ep003");
+    assert_eq!(ep3.verdict, Verdict::Unusable);
+    assert!(
+        ep3.reasons.iter().any(|r| r.contains(&broken)),
+        "{broken}: {:?}",
+        ep3.reasons
+    );
+    // The mapping episode still finished, and said so.
+    assert!(copy.join("episodes/ep000/out/left.csv").is_file());
+    assert_eq!(report.failed_episodes(), 3);
     // The broken episode's out/ holds only its verdict, never stale trajectories.
     assert!(!copy.join("episodes/ep001/out/left.csv").exists());
     let q = read_quality(&copy.join("episodes/ep001/out/quality.json")).unwrap();
     assert_eq!(q.verdict, Verdict::Unusable);
-    let _ = DURATIONS;
 }

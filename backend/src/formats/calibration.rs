@@ -60,6 +60,24 @@ pub fn load_lens_calibration(path: &Path, lens: &str) -> Result<LensImuCalibrati
     })
 }
 
+/// Rolling-shutter readout of a full frame (s) in the recording mode a camera recorded in: the
+/// mode of that name in the unit calibration, else one with the same frame rate and a known
+/// readout; `None` when the calibration knows neither.
+pub fn readout_for(calibration: &UnitCalibration, mode: &str, fps: f64) -> Option<f64> {
+    /// Frame rates of two modes closer than this are the same rate (29.97 vs 30 are not).
+    const SAME_RATE_HZ: f64 = 0.01;
+    let modes = &calibration.recording_modes;
+    modes
+        .iter()
+        .find(|m| m.name == mode && m.readout_time_s.is_some())
+        .or_else(|| {
+            modes
+                .iter()
+                .find(|m| (m.fps - fps).abs() < SAME_RATE_HZ && m.readout_time_s.is_some())
+        })
+        .and_then(|m| m.readout_time_s)
+}
+
 /// IMU parameters from explicit densities, else the calibration's, else an error naming both.
 pub fn imu_params(
     explicit: Option<[f64; 4]>,

@@ -195,6 +195,30 @@ impl FusedNode {
     }
 }
 
+impl FusedNode {
+    /// The node carried `dt` seconds along the IMU (negative: earlier), e.g. from a
+    /// rolling-shutter frame's exposure centre, where its visual observations are exact, back to
+    /// the frame's timestamp (its first row). Constant angular rate and acceleration over `dt`
+    /// (a few milliseconds): rotation by the bias-corrected gyro, position and velocity by the
+    /// velocity and the gravity-compensated acceleration. The covariance is kept.
+    pub fn carried(&self, imu: &ImuSample, gravity: &Vector3<f64>, dt: f64) -> FusedNode {
+        let rotation = self.scene_from_imu.rotation;
+        let omega = imu.gyro - self.bias.gyro;
+        let acceleration = rotation * (imu.accel - self.bias.acc) + gravity;
+        let position = self.scene_from_imu.translation.vector
+            + self.velocity * dt
+            + 0.5 * acceleration * dt * dt;
+        let mut node = *self;
+        node.t = self.t + dt;
+        node.scene_from_imu = Pose::from_parts(
+            nalgebra::Translation3::from(position),
+            rotation * kiwi_core::geometry::so3_exp(&(omega * dt)),
+        );
+        node.velocity = self.velocity + acceleration * dt;
+        node
+    }
+}
+
 /// The fused trajectory and solver statistics.
 #[derive(Debug, Clone)]
 pub struct FusionResult {
@@ -308,8 +332,6 @@ pub fn preintegrate_nodes(
     Ok(out)
 }
 
-/// The observation of one source at node time `t`: exact match or interpolation inside a
-/// contiguous run.
 /// The observation of a source at node time `t`: one within the match tolerance, else one
 /// interpolated between its neighbours when they are close enough (`true` = interpolated).
 fn observation_at(obs: &[PoseObservation], t: f64, config: &FusionConfig) -> Option<(Pose, bool)> {

@@ -66,8 +66,8 @@ pub fn version(kind: &StageKind) -> &'static str {
         StageKind::Localize { .. } => "localize-1",
         StageKind::Metric { .. } => "metric-1",
         StageKind::Placement { .. } => "placement-1",
-        StageKind::Observations { .. } => "observations-1",
-        StageKind::Fusion { .. } => "fusion-2",
+        StageKind::Observations { .. } => "observations-2",
+        StageKind::Fusion { .. } => "fusion-3",
         StageKind::Gripper { .. } => "gripper-1",
         StageKind::Outputs { .. } => "outputs-1",
     }
@@ -251,14 +251,28 @@ pub fn inputs(ctx: &SessionContext, kind: &StageKind) -> Result<Vec<InputDigest>
                 calibration_input(ctx, w)?,
             ]
         }
-        StageKind::Placement { side } | StageKind::Observations { side, .. } => {
-            vec![calibration_input(ctx, wrist(ctx, *side)?)?]
+        StageKind::Placement { side } => vec![calibration_input(ctx, wrist(ctx, *side)?)?],
+        StageKind::Observations { episode, side } => {
+            let w = wrist(ctx, *side)?;
+            vec![
+                calibration_input(ctx, w)?,
+                file_input(
+                    ctx,
+                    format!("meta {}", w.camera),
+                    &ctx.episode(episode).meta_json(w.camera),
+                )?,
+            ]
         }
         StageKind::Fusion { episode, side } => {
             let w = wrist(ctx, *side)?;
             let layout = ctx.episode(episode);
             vec![
                 file_input(ctx, format!("imu {}", w.camera), &layout.imu_csv(w.camera))?,
+                file_input(
+                    ctx,
+                    format!("meta {}", w.camera),
+                    &layout.meta_json(w.camera),
+                )?,
                 file_input(
                     ctx,
                     format!("frames {}/front", w.camera),
@@ -595,6 +609,24 @@ fn run_placement(env: &StageEnv<'_>, side: Side) -> Result<()> {
     write_json(&env.out.join("placement.json"), &file)
 }
 
+/// Time from a frame's timestamp (its first row) to its exposure centre (s): half the rolling
+/// readout of the recording mode the camera recorded the episode in (`meta.json`), as the unit's
+/// calibration gives it; 0 for a global shutter or a mode without a known readout.
+fn exposure_centre_delay(ctx: &SessionContext, episode: &str, w: &WristContext) -> Result<f64> {
+    let meta = ctx.episode(episode).read_meta(w.camera)?;
+    let readout = crate::formats::calibration::readout_for(&w.calibration, &meta.mode, meta.fps);
+    if readout.is_none() {
+        tracing::warn!(
+            "{}: no readout time for recording mode {} ({} fps): frames are treated as \
+             global-shutter exposures",
+            w.calibration_path.display(),
+            meta.mode,
+            meta.fps
+        );
+    }
+    Ok(0.5 * readout.unwrap_or(0.0))
+}
+
 /// The frozen scene reference of a wrist, from the session's metric and placement stages.
 pub fn scene_reference(ctx: &SessionContext, side: Side) -> Result<SceneReference> {
     let dir = |kind: StageKind| id_of(&kind).dir(&ctx.root);
@@ -623,7 +655,8 @@ fn run_observations(env: &StageEnv<'_>, episode: &str, side: Side) -> Result<()>
     let front = localizations_of(env, episode, side, Lens::Front)?;
     let rear = localizations_of(env, episode, side, Lens::Rear)?;
     let reference = scene_reference(env.ctx, side)?;
-    let (obs, counts) = body_observations(&front, &rear, &reference, &w.front, &w.rear);
+    let centre = exposure_centre_delay(env.ctx, episode, w)?;
+    let (obs, counts) = body_observations(&front, &rear, &reference, &w.front, &w.rear, centre);
     write_observations(&env.out.join(OBSERVATIONS_FILE), &obs)?;
     write_json(&env.out.join(SUMMARY_FILE), &counts)
 }
@@ -649,17 +682,29 @@ fn run_fusion(env: &StageEnv<'_>, episode: &str, side: Side) -> Result<()> {
     // Frames exposed before the IMU log starts or after it ends (a camera starts its IMU a
     // moment after its first frame) cannot be states of the graph: they are left out and
     // counted.
+    // The graph's states sit at each frame's exposure centre, where its visual observations are
+    // exact; each is then carried back along the IMU to the frame's timestamp (its first row),
+    // the time the outputs give it.
+    let centre = exposure_centre_delay(env.ctx, episode, w)?;
     let (first, last) = imu.time_range();
     let (camera_times, node_times): (Vec<f64>, Vec<f64>) = frames
         .iter()
-        .map(|f| (f.t, f.t + w.front.time_shift_s))
-        .filter(|(_, t)| (first..=last).contains(t))
+        .map(|f| (f.t, f.t + w.front.time_shift_s + centre))
+        .filter(|(_, t)| (first..=last).contains(t) && (first..=last).contains(&(t - centre)))
         .unzip();
     let config = FusionConfig::default();
-    let result = fuse(imu.samples(), &w.imu, &node_times, &observations, &config)?;
+    let mut result = fuse(imu.samples(), &w.imu, &node_times, &observations, &config)?;
+    let statistics = crate::fusion::residual_statistics(&result, &observations, &config);
+    if centre > 0.0 {
+        for node in &mut result.nodes {
+            if let Some(sample) = imu.interpolate(node.t) {
+                *node = node.carried(&sample, &w.imu.gravity, -centre);
+            }
+        }
+    }
     write_fused(&env.out.join(FUSED_FILE), &camera_times, &result.nodes)?;
     let summary = FusionSummary {
-        statistics: crate::fusion::residual_statistics(&result, &observations, &config),
+        statistics,
         frames_outside_imu: frames.len() - node_times.len(),
     };
     write_json(&env.out.join(SUMMARY_FILE), &summary)?;

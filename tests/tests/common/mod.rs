@@ -10,6 +10,7 @@ use std::path::{Path, PathBuf};
 use kiwi_calib::certify::policy::Policy;
 use kiwi_calib::certify::{CertifyOptions, certify};
 use kiwi_core::geometry::Pose;
+use kiwi_core::tool::ToolDefinition;
 use kiwi_fixtures::captures::{UnitCaptureOptions, write_unit_captures};
 use kiwi_fixtures::scenario::Scenario;
 use kiwi_fixtures::session::{CertifiedUnits, Cover, SessionOptions, write_session};
@@ -36,12 +37,46 @@ pub const DURATIONS: [f64; 4] = [20.0, 6.0, 8.0, 6.0];
 /// keeps tracking) and both lenses of the right wrist are covered.
 pub const BLIND: (f64, f64) = (2.5, 1.5);
 
+/// What a simulated, certified session is made of.
+#[derive(Debug, Clone)]
+pub struct SessionSpec {
+    /// Seed of the units and the session.
+    pub seed: u64,
+    /// Per-lens image size (px).
+    pub resolution: u32,
+    /// Wrist frame rate (Hz).
+    pub rate_hz: f64,
+    /// Episode motions, the first builds the maps.
+    pub scenarios: Vec<Scenario>,
+    /// Episode durations (s).
+    pub durations: Vec<f64>,
+    /// Lenses covered for a while.
+    pub covers: Vec<Cover>,
+}
+
+impl SessionSpec {
+    /// The shared end-to-end session of the tests.
+    pub fn shared() -> Self {
+        SessionSpec {
+            seed: SEED,
+            resolution: RESOLUTION,
+            rate_hz: 29.97,
+            scenarios: SCENARIOS.to_vec(),
+            durations: DURATIONS.to_vec(),
+            covers: ["left:front", "right:front", "right:rear"]
+                .iter()
+                .map(|cl| Cover::parse(&format!("3:{cl}:{}:{}", BLIND.0, BLIND.1)).expect("cover"))
+                .collect(),
+        }
+    }
+}
+
 /// Certify one simulated unit at the session's resolution (captures as `make demo` makes them).
-fn certified_unit(dir: &Path, unit_id: &str, units: &Path) {
+fn certified_unit(dir: &Path, unit_id: &str, units: &Path, spec: &SessionSpec) {
     let captures = dir.join("captures").join(unit_id);
     let mut o = UnitCaptureOptions::new(&captures, unit_id);
-    o.seed = SEED;
-    o.resolution = RESOLUTION;
+    o.seed = spec.seed;
+    o.resolution = spec.resolution;
     o.views = 24;
     o.cam_imu_duration_s = 4.0;
     o.static_duration_s = 4.0 * 3600.0;
@@ -70,33 +105,30 @@ fn certified_unit(dir: &Path, unit_id: &str, units: &Path) {
     std::fs::remove_dir_all(&captures).expect("captures removed");
 }
 
-/// Build `dir/session` once: two units certified from their simulated captures, then a session
-/// recorded with exactly those units.
-fn build_session(dir: &Path) -> PathBuf {
+/// Build `dir/session`: two units certified from their simulated captures, then a session
+/// recorded with exactly those units. Returns its `session.toml`.
+pub fn build_session(dir: &Path, spec: &SessionSpec) -> PathBuf {
     let units = dir.join("units");
     for id in UNITS {
-        certified_unit(dir, id, &units);
+        certified_unit(dir, id, &units, spec);
     }
     let mut o = SessionOptions::new(dir.join("session"));
-    o.seed = SEED;
-    o.resolution = RESOLUTION;
-    o.rate_hz = 29.97;
-    o.episodes = SCENARIOS.len();
-    o.episode_scenarios = SCENARIOS.to_vec();
-    o.episode_durations = DURATIONS.to_vec();
-    o.scenario = SCENARIOS[0];
-    o.duration_s = DURATIONS[0];
+    o.seed = spec.seed;
+    o.resolution = spec.resolution;
+    o.rate_hz = spec.rate_hz;
+    o.episodes = spec.scenarios.len();
+    o.episode_scenarios = spec.scenarios.clone();
+    o.episode_durations = spec.durations.clone();
+    o.scenario = spec.scenarios[0];
+    o.duration_s = spec.durations[0];
     o.blur_samples = 2;
     o.units = Some(CertifiedUnits {
         dir: units,
         left: UNITS[0].into(),
         right: UNITS[1].into(),
-        seed: SEED,
+        seed: spec.seed,
     });
-    o.covers = ["left:front", "right:front", "right:rear"]
-        .iter()
-        .map(|cl| Cover::parse(&format!("3:{cl}:{}:{}", BLIND.0, BLIND.1)).expect("cover"))
-        .collect();
+    o.covers = spec.covers.clone();
     write_session(&o).expect("session").session_toml
 }
 
@@ -113,7 +145,7 @@ pub fn shared_session() -> PathBuf {
         for sub in ["session", "units", "captures"] {
             let _ = std::fs::remove_dir_all(root.join(sub));
         }
-        build_session(&root);
+        build_session(&root, &SessionSpec::shared());
         std::fs::write(root.join("ready"), b"ok").expect("marker");
     }
     lock.unlock().expect("unlock");
@@ -261,11 +293,10 @@ pub fn median_p95(mut v: Vec<f64>) -> (f64, f64) {
 
 /// The rigid `world_from_scene` fitted on the front-camera positions of a wrist's outputs.
 pub fn fit_world_from_scene(rows: &[OutRow], truth: &[TruthFrame]) -> Pose {
-    let by_t: BTreeMap<u64, &TruthFrame> = truth.iter().map(|f| (f.t.to_bits(), f)).collect();
     let mut est = Vec::new();
     let mut tru = Vec::new();
     for r in rows {
-        if let Some(f) = truth_at(&by_t, truth, r.t_camera) {
+        if let Some(f) = truth_at(truth, r.t_camera) {
             est.push(r.cam.translation.vector);
             tru.push(f.world_from_cam.translation.vector);
         }
@@ -275,11 +306,7 @@ pub fn fit_world_from_scene(rows: &[OutRow], truth: &[TruthFrame]) -> Pose {
 }
 
 /// The truth frame with the same camera time (the outputs keep 6 decimals).
-pub fn truth_at<'a>(
-    _by_bits: &BTreeMap<u64, &'a TruthFrame>,
-    truth: &'a [TruthFrame],
-    t: f64,
-) -> Option<&'a TruthFrame> {
+pub fn truth_at(truth: &[TruthFrame], t: f64) -> Option<&TruthFrame> {
     let k = truth.partition_point(|f| f.t < t - 1e-6);
     truth.get(k).filter(|f| (f.t - t).abs() < 1e-5)
 }
@@ -292,4 +319,69 @@ pub fn truth_point_at_session(truth: &[TruthFrame], offset: &Pose, t: f64) -> Op
     let pa = (a.world_from_cam * offset).translation.vector;
     let pb = (b.world_from_cam * offset).translation.vector;
     Some(pa + (pb - pa) * s)
+}
+
+/// The builtin tool's `cam_from_tip` of a wrist (left chopstick, right parallel jaw).
+pub fn cam_from_tip(kind: &str) -> Pose {
+    let kind = match kind {
+        "left" => kiwi_core::layout::ToolKind::Chopstick,
+        _ => kiwi_core::layout::ToolKind::ParallelJaw,
+    };
+    ToolDefinition::builtin(kind).unwrap().cam_from_tip()
+}
+
+/// Tool-tip errors of one wrist.
+pub struct Errors {
+    /// Position errors (m).
+    pub position: Vec<f64>,
+    /// Rotation errors (deg).
+    pub rotation_deg: Vec<f64>,
+    /// Frames compared.
+    pub frames: usize,
+}
+
+/// Tool-tip errors of a wrist in an episode, optionally only for frames whose session time is
+/// inside `window` (s into the episode).
+pub fn tip_errors(
+    session: &Path,
+    episode: &str,
+    camera: &str,
+    world_from_scene: &Pose,
+    window: Option<(f64, f64)>,
+) -> Errors {
+    let rows = out_rows(session, episode, camera);
+    let truth = truth_frames(session, episode, camera, "front");
+    let tip = cam_from_tip(camera);
+    let mut e = Errors {
+        position: Vec::new(),
+        rotation_deg: Vec::new(),
+        frames: 0,
+    };
+    for r in &rows {
+        let Some(f) = truth_at(&truth, r.t_camera) else {
+            continue;
+        };
+        if let Some((a, b)) = window
+            && !(a..b).contains(&f.t_session)
+        {
+            continue;
+        }
+        e.frames += 1;
+        let est = world_from_scene * r.tip;
+        let tru = f.world_from_cam * tip;
+        e.position
+            .push((est.translation.vector - tru.translation.vector).norm());
+        e.rotation_deg
+            .push(est.rotation.angle_to(&tru.rotation).to_degrees());
+    }
+    e
+}
+
+/// `world_from_scene` fitted on the mapping episode's left front-camera trajectory.
+pub fn alignment(session: &Path) -> Pose {
+    let map_ep = "ep000";
+    fit_world_from_scene(
+        &out_rows(session, map_ep, "left"),
+        &truth_frames(session, map_ep, "left", "front"),
+    )
 }
