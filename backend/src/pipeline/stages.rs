@@ -63,7 +63,7 @@ pub fn version(kind: &StageKind) -> &'static str {
         StageKind::Sync { .. } => "sync-2",
         StageKind::Map { .. } => "map-1",
         StageKind::Tool { .. } => "tool-1",
-        StageKind::Localize { .. } => "localize-1",
+        StageKind::Localize { .. } => "localize-2",
         StageKind::Metric { .. } => "metric-1",
         StageKind::Placement { .. } => "placement-1",
         StageKind::Observations { .. } => "observations-2",
@@ -335,7 +335,13 @@ impl StageEnv<'_> {
 fn without_timings(value: serde_json::Value) -> serde_json::Value {
     match value {
         serde_json::Value::Object(mut m) => {
-            for key in ["seconds", "frames_per_second", "frames_per_s"] {
+            // Wall-clock figures depend on the machine and its load: results must not.
+            for key in [
+                "seconds",
+                "frames_per_second",
+                "frames_per_s",
+                "relocalization_ms_per_attempt",
+            ] {
                 m.remove(key);
             }
             serde_json::Value::Object(m)
@@ -419,20 +425,29 @@ fn open_stream(ctx: &SessionContext, episode: &str, side: Side, lens: Lens) -> R
 fn run_map(env: &StageEnv<'_>, map: MapName) -> Result<()> {
     let (side, lens) = map_source(env.ctx, map);
     let stream = open_stream(env.ctx, &env.ctx.session.map_episode, side, lens)?;
+    let context = format!(
+        "map {} from {}",
+        map.label(),
+        env.ctx.relative(
+            &env.ctx
+                .episode(&env.ctx.session.map_episode)
+                .lens_dir(wrist(env.ctx, side)?.camera, lens.name())
+        )
+    );
     let (vmap, summary) = build_map_with(&stream, true, &mut |done, total| {
         (env.progress)(done, total);
+    })
+    .map_err(|e| match e {
+        // Name the stream the map was built from: the mapper's own errors do not know it.
+        BackendError::Vision { message, .. } => BackendError::Vision {
+            context: context.clone(),
+            message,
+        },
+        other => other,
     })?;
     if summary.keyframes < 2 || summary.landmarks == 0 {
         return Err(BackendError::Vision {
-            context: format!(
-                "map {} from {}",
-                map.label(),
-                env.ctx.relative(
-                    &env.ctx
-                        .episode(&env.ctx.session.map_episode)
-                        .lens_dir(wrist(env.ctx, side)?.camera, lens.name())
-                )
-            ),
+            context,
             message: format!(
                 "the stream gave {} keyframes and {} landmarks: not a map; record the mapping \
                  episode with slower, wider motion over textured surroundings",
