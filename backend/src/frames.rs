@@ -13,6 +13,7 @@ use std::collections::VecDeque;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 
+use opencv::prelude::*;
 use rayon::prelude::*;
 
 use kiwi_core::camera::{Camera, CameraModel};
@@ -405,14 +406,13 @@ pub fn load_image_bgr(path: &Path) -> Result<ColorImage> {
         path: path.to_path_buf(),
         message,
     };
-    let mat = opencv::imgcodecs::imread(&path.to_string_lossy(), opencv::imgcodecs::IMREAD_COLOR)
+    let mat = opencv::imgcodecs::imread(path, opencv::imgcodecs::IMREAD_COLOR)
         .map_err(|e| bad(format!("cannot read the image: {e}")))?;
     if mat.empty() {
         return Err(bad(
             "cannot read the image (missing or not an image); check frames.csv".into(),
         ));
     }
-    use opencv::prelude::*;
     let (w, h) = (mat.cols() as usize, mat.rows() as usize);
     let bytes = mat
         .data_bytes()

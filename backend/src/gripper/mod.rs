@@ -17,8 +17,6 @@ use std::path::{Path, PathBuf};
 use kiwi_core::camera::Camera;
 use kiwi_core::io::write_atomic;
 use kiwi_core::tool::{ToolCalibration, ToolDefinition};
-use opencv::prelude::*;
-use rayon::prelude::*;
 use serde::Serialize;
 
 pub use estimate::{ChannelOrder, GripperEstimator, ImageView, Measurement, OpeningUnit};

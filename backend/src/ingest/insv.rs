@@ -284,7 +284,7 @@ pub fn read_trailer(path: &Path) -> Result<Option<Trailer>> {
     let start = size - trailer_size;
     let first_header_at = size - FOOTER_LEN - RECORD_HEADER_LEN;
     let header = read_at(&mut file, path, first_header_at, RECORD_HEADER_LEN)?;
-    let (format, id, len) = (header[0], header[1], u64::from(u32_le(&header[2..6])));
+    let (id, len) = (header[1], u64::from(u32_le(&header[2..6])));
     if id == record_id::INDEX && len > 0 && len % INDEX_ENTRY_LEN as u64 == 0 {
         if len > first_header_at - start {
             return Err(bad(path, format!("the index record ({len} bytes) runs past the trailer")));
@@ -314,7 +314,6 @@ pub fn read_trailer(path: &Path) -> Result<Option<Trailer>> {
                 size: rsize,
             });
         }
-        let _ = format;
         return Ok(Some(Trailer {
             version,
             start,
