@@ -17,9 +17,7 @@ use opencv::prelude::*;
 use rayon::prelude::*;
 
 use kiwi_core::camera::{Camera, CameraModel};
-use kiwi_core::layout::{
-    CameraMeta, FrameRecord, LensStorage, VideoStream, read_frames_csv,
-};
+use kiwi_core::layout::{CameraMeta, FrameRecord, LensStorage, VideoStream, read_frames_csv};
 
 use crate::error::{BackendError, Result};
 pub use crate::formats::video::ColorImage;
@@ -148,9 +146,8 @@ impl FrameSource {
             LensStorage::Video(v) => Ok((v.width, v.height)),
             LensStorage::Images => {
                 let path = self.lens_dir.join(&self.frames[0].file);
-                image::image_dimensions(&path).map_err(|e| {
-                    input_err(&path, format!("cannot read the image header: {e}"))
-                })
+                image::image_dimensions(&path)
+                    .map_err(|e| input_err(&path, format!("cannot read the image header: {e}")))
             }
         }
     }
@@ -284,8 +281,8 @@ impl FrameSource {
                             }
                         };
                     for i in 0..n {
-                        let img = read_checked(&mut reader, i, &self.frames)
-                            .and_then(|c| from_video(&c));
+                        let img =
+                            read_checked(&mut reader, i, &self.frames).and_then(|c| from_video(&c));
                         let failed = img.is_err();
                         if tx.send(img).is_err() || failed {
                             return;
@@ -418,7 +415,10 @@ pub fn load_image_bgr(path: &Path) -> Result<ColorImage> {
         .data_bytes()
         .map_err(|e| bad(format!("cannot access the pixels: {e}")))?;
     if bytes.len() != w * h * 3 {
-        return Err(bad(format!("expected {w}x{h}x3 bytes, found {}", bytes.len())));
+        return Err(bad(format!(
+            "expected {w}x{h}x3 bytes, found {}",
+            bytes.len()
+        )));
     }
     Ok(ColorImage {
         width: w,

@@ -144,7 +144,12 @@ fn raw_imu(first_frame_us: i64, frames: usize) -> Vec<(u64, [u16; 6])> {
     out
 }
 
-fn trailer(model: &str, imu: TrailerImu, first_frame_us: i64, layout: TrailerLayout) -> InsvTrailer {
+fn trailer(
+    model: &str,
+    imu: TrailerImu,
+    first_frame_us: i64,
+    layout: TrailerLayout,
+) -> InsvTrailer {
     InsvTrailer {
         serial: "TEST0001".into(),
         camera_type: model.into(),
@@ -329,10 +334,19 @@ fn an_x5_recording_and_a_go3_recording_are_ingested_exactly() {
         assert!((s.t - t_video).abs() < 1e-9, "t {} vs {t_video}", s.t);
         let v = |i: usize| f64::from(c[i]) - 32768.0;
         let accel = x5_axes([v(0), v(1), v(2)]).map(|x| x * 32.0 / 32768.0 * g);
-        let gyro = x5_axes([v(3), v(4), v(5)]).map(|x| x * 2000.0 / 32768.0 * std::f64::consts::PI / 180.0);
+        let gyro = x5_axes([v(3), v(4), v(5)])
+            .map(|x| x * 2000.0 / 32768.0 * std::f64::consts::PI / 180.0);
         for i in 0..3 {
-            assert!((s.accel[i] - accel[i]).abs() < 1e-9, "accel {:?} vs {accel:?}", s.accel);
-            assert!((s.gyro[i] - gyro[i]).abs() < 1e-12, "gyro {:?} vs {gyro:?}", s.gyro);
+            assert!(
+                (s.accel[i] - accel[i]).abs() < 1e-9,
+                "accel {:?} vs {accel:?}",
+                s.accel
+            );
+            assert!(
+                (s.gyro[i] - gyro[i]).abs() < 1e-12,
+                "gyro {:?} vs {gyro:?}",
+                s.gyro
+            );
         }
     }
     let head = ImuSeries::read_csv(&layout.imu_csv("head")).unwrap();
@@ -349,8 +363,15 @@ fn an_x5_recording_and_a_go3_recording_are_ingested_exactly() {
     let delay = (AUDIO_DELAY_S * f64::from(AUDIO_RATE)).round() as usize;
     for camera in ["left", "head"] {
         let got = wav_samples(&layout.audio_wav(camera));
-        assert!(got[..delay].iter().all(|&v| v == 0), "{camera}: silence before the track");
-        assert_eq!(&got[delay..], &audio[..got.len() - delay], "{camera}: audio to the sample");
+        assert!(
+            got[..delay].iter().all(|&v| v == 0),
+            "{camera}: silence before the track"
+        );
+        assert_eq!(
+            &got[delay..],
+            &audio[..got.len() - delay],
+            "{camera}: audio to the sample"
+        );
     }
 
     // Metadata and exposure times.
@@ -412,7 +433,11 @@ fn split_recordings_and_lens_file_pairs_are_joined() {
         let src = FrameSource::open(&layout.lens_dir("left", lens)).unwrap();
         assert_eq!(src.len(), 50);
         for (k, f) in src.frames().iter().enumerate() {
-            assert!((f.t - k as f64 / FPS).abs() < 1e-9, "{lens} frame {k}: {}", f.t);
+            assert!(
+                (f.t - k as f64 / FPS).abs() < 1e-9,
+                "{lens} frame {k}: {}",
+                f.t
+            );
         }
         // PNG output: the front lens is the _00_ file (red).
         let img = src.load_color(40).unwrap();
@@ -421,11 +446,17 @@ fn split_recordings_and_lens_file_pairs_are_joined() {
     }
     let imu = ImuSeries::read_csv(&layout.imu_csv("left")).unwrap();
     let dt: Vec<f64> = imu.samples().windows(2).map(|w| w[1].t - w[0].t).collect();
-    assert!(dt.iter().all(|d| *d > 0.0 && *d < 1.5e-3), "IMU continuous across segments");
+    assert!(
+        dt.iter().all(|d| *d > 0.0 && *d < 1.5e-3),
+        "IMU continuous across segments"
+    );
     let audio_got = wav_samples(&layout.audio_wav("left"));
     let second_start = (n1 as f64 / FPS * f64::from(AUDIO_RATE)).round() as usize
         + (AUDIO_DELAY_S * f64::from(AUDIO_RATE)).round() as usize;
-    assert_eq!(audio_got[second_start], audio[0], "the second segment's audio is placed");
+    assert_eq!(
+        audio_got[second_start], audio[0],
+        "the second segment's audio is placed"
+    );
 }
 
 fn ingest_err(files: Vec<PathBuf>, imu_csv: Option<PathBuf>) -> BackendError {
@@ -458,30 +489,58 @@ fn known_field_failures_have_named_errors() {
     // X5 firmware that writes no gyro record.
     let no_gyro = tmp.path().join("VID_20260101_120000_00_001.insv");
     recording(&no_gyro, &["red", "blue"], 10, 0, Some(&wav), &[]);
-    trailer("Insta360 X5", TrailerImu::None, FIRST_FRAME_US, TrailerLayout::Indexed)
-        .append_to(&no_gyro)
-        .unwrap();
+    trailer(
+        "Insta360 X5",
+        TrailerImu::None,
+        FIRST_FRAME_US,
+        TrailerLayout::Indexed,
+    )
+    .append_to(&no_gyro)
+    .unwrap();
     let e = ingest_err(vec![no_gyro], None);
     assert!(matches!(e, BackendError::NoGyroRecord { .. }), "{e}");
-    assert!(e.to_string().contains("v1.10.9_build1") && e.to_string().contains("firmware"), "{e}");
+    assert!(
+        e.to_string().contains("v1.10.9_build1") && e.to_string().contains("firmware"),
+        "{e}"
+    );
 
     // No audio track.
     let silent = tmp.path().join("VID_20260101_120000_00_002.insv");
     recording(&silent, &["red", "blue"], 10, 0, None, &[]);
-    trailer("Insta360 X5", TrailerImu::Raw(raw_imu(FIRST_FRAME_US, 10)), FIRST_FRAME_US, TrailerLayout::Indexed)
-        .append_to(&silent)
-        .unwrap();
+    trailer(
+        "Insta360 X5",
+        TrailerImu::Raw(raw_imu(FIRST_FRAME_US, 10)),
+        FIRST_FRAME_US,
+        TrailerLayout::Indexed,
+    )
+    .append_to(&silent)
+    .unwrap();
     let e = ingest_err(vec![silent], None);
     assert!(matches!(e, BackendError::MissingAudio { .. }), "{e}");
 
     // One lens track only.
     let one = tmp.path().join("VID_20260101_120000_00_003.insv");
     recording(&one, &["red"], 10, 0, Some(&wav), &[]);
-    trailer("Insta360 X5", TrailerImu::Raw(raw_imu(FIRST_FRAME_US, 10)), FIRST_FRAME_US, TrailerLayout::Indexed)
-        .append_to(&one)
-        .unwrap();
+    trailer(
+        "Insta360 X5",
+        TrailerImu::Raw(raw_imu(FIRST_FRAME_US, 10)),
+        FIRST_FRAME_US,
+        TrailerLayout::Indexed,
+    )
+    .append_to(&one)
+    .unwrap();
     let e = ingest_err(vec![one], None);
-    assert!(matches!(e, BackendError::MissingLensTrack { found: 1, expected: 2, .. }), "{e}");
+    assert!(
+        matches!(
+            e,
+            BackendError::MissingLensTrack {
+                found: 1,
+                expected: 2,
+                ..
+            }
+        ),
+        "{e}"
+    );
 
     // Variable frame rate: frame 10 comes 40 ms late (a generic file with an IMU CSV).
     let vfr = tmp.path().join("vfr.mov");
@@ -491,11 +550,23 @@ fn known_field_failures_have_named_errors() {
         20,
         0,
         Some(&wav),
-        &["-vf", "setpts=PTS+if(gte(N\\,10)\\,0.04/TB\\,0)", "-fps_mode", "passthrough"],
+        &[
+            "-vf",
+            "setpts=PTS+if(gte(N\\,10)\\,0.04/TB\\,0)",
+            "-fps_mode",
+            "passthrough",
+        ],
     );
     let imu = tmp.path().join("imu.csv");
-    std::fs::write(&imu, "t,gx,gy,gz,ax,ay,az\n0,0,0,0,0,0,9.8\n0.01,0,0,0,0,0,9.8\n").unwrap();
+    std::fs::write(
+        &imu,
+        "t,gx,gy,gz,ax,ay,az\n0,0,0,0,0,0,9.8\n0.01,0,0,0,0,0,9.8\n",
+    )
+    .unwrap();
     let e = ingest_err(vec![vfr], Some(imu));
-    assert!(matches!(e, BackendError::VariableFrameRate { frame: 10, .. }), "{e}");
+    assert!(
+        matches!(e, BackendError::VariableFrameRate { frame: 10, .. }),
+        "{e}"
+    );
     println!("{e}");
 }

@@ -455,8 +455,7 @@ impl VideoStream {
                 "rename the video",
             ));
         }
-        if self.width == 0 || self.height == 0 || self.frames == 0 || self.keyframe_interval == 0
-        {
+        if self.width == 0 || self.height == 0 || self.frames == 0 || self.keyframe_interval == 0 {
             return Err(CoreError::invalid_value(
                 "width, height, frames, keyframe_interval",
                 "positive values",
@@ -777,7 +776,10 @@ mod tests {
         assert_eq!(LensStorage::of(dir.path()).unwrap(), LensStorage::Images);
         let v = video();
         v.save(&dir.path().join(VIDEO_JSON)).unwrap();
-        assert_eq!(LensStorage::of(dir.path()).unwrap(), LensStorage::Video(v.clone()));
+        assert_eq!(
+            LensStorage::of(dir.path()).unwrap(),
+            LensStorage::Video(v.clone())
+        );
         let rows: Vec<FrameRecord> = (0..3)
             .map(|i| FrameRecord {
                 t: i as f64 / 30.0,

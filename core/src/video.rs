@@ -9,9 +9,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, ChildStdin, Command, Stdio};
 
 use crate::error::{CoreError, Result};
-use crate::layout::{
-    FrameRecord, VIDEO_JSON, VIDEO_SCHEMA_VERSION, VideoStream, write_frames_csv,
-};
+use crate::layout::{FrameRecord, VIDEO_JSON, VIDEO_SCHEMA_VERSION, VideoStream, write_frames_csv};
 
 /// The video file of a stream written here, inside the lens folder.
 pub const VIDEO_FILE_NAME: &str = "video.mkv";

@@ -122,7 +122,10 @@ impl VideoReader {
         if index >= self.frames {
             return Err(video_err(
                 &self.path,
-                format!("frame {index} asked for, the stream has {} frames", self.frames),
+                format!(
+                    "frame {index} asked for, the stream has {} frames",
+                    self.frames
+                ),
             ));
         }
         let ok = self

@@ -32,8 +32,8 @@ use rayon::prelude::*;
 
 use super::aruco::{TagDetector, TagView, project_bearing};
 use super::estimate::{GripperEstimator, ImageView, JawDots, JawLine, fit_line};
-use crate::frames::FrameSource;
 use crate::error::{BackendError, Result};
+use crate::frames::FrameSource;
 
 /// The virtual tag view covers this many tag half-diagonals around the nominal tag centre:
 /// room for a tool mounted several millimetres and degrees off its CAD pose.
@@ -674,26 +674,25 @@ pub fn calibrate_tool(
     }
     let chosen = spread(frames.len(), options.max_frames);
     // Load each chosen frame once: tag corners and the pixels for the dot passes.
-    let loaded: Vec<(Option<Corners>, Option<Frame>)> =
-        source.map_color(&chosen, |_, img| {
-            let img = img.ok().map(|c| (c.width, c.height, c.bgr));
-            let tag = img.as_ref().and_then(|(w, h, data)| {
-                detector
-                    .detect(
-                        &view,
-                        &ImageView {
-                            width: *w,
-                            height: *h,
-                            data,
-                            order: super::ChannelOrder::Bgr,
-                        },
-                    )
-                    .ok()
-                    .flatten()
-            });
-            progress();
-            (tag, img)
+    let loaded: Vec<(Option<Corners>, Option<Frame>)> = source.map_color(&chosen, |_, img| {
+        let img = img.ok().map(|c| (c.width, c.height, c.bgr));
+        let tag = img.as_ref().and_then(|(w, h, data)| {
+            detector
+                .detect(
+                    &view,
+                    &ImageView {
+                        width: *w,
+                        height: *h,
+                        data,
+                        order: super::ChannelOrder::Bgr,
+                    },
+                )
+                .ok()
+                .flatten()
         });
+        progress();
+        (tag, img)
+    });
     // Per-frame fits screen misdetections and give the scatter.
     let mut good: Vec<[Vector3<f64>; 4]> = Vec::new();
     let mut per_frame: Vec<Isometry3<f64>> = Vec::new();

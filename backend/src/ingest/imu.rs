@@ -54,7 +54,11 @@ impl AxisMap {
                 [b'+', a] => (1, *a),
                 [b'-', a] => (-1, *a),
                 [a] => (1, *a),
-                _ => return Err(format!("`{p}` in `{text}`: expected +x, -x, +y, -y, +z or -z")),
+                _ => {
+                    return Err(format!(
+                        "`{p}` in `{text}`: expected +x, -x, +y, -y, +z or -z"
+                    ));
+                }
             };
             let axis = match axis.to_ascii_lowercase() {
                 b'x' => 0,

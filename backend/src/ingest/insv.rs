@@ -239,7 +239,8 @@ fn u64_le(b: &[u8]) -> u64 {
 }
 
 fn read_at(file: &mut std::fs::File, path: &Path, offset: u64, len: u64) -> Result<Vec<u8>> {
-    file.seek(SeekFrom::Start(offset)).map_err(|e| io(path, &e))?;
+    file.seek(SeekFrom::Start(offset))
+        .map_err(|e| io(path, &e))?;
     let mut buf = vec![0u8; len as usize];
     file.read_exact(&mut buf).map_err(|e| io(path, &e))?;
     Ok(buf)
@@ -287,7 +288,10 @@ pub fn read_trailer(path: &Path) -> Result<Option<Trailer>> {
     let (id, len) = (header[1], u64::from(u32_le(&header[2..6])));
     if id == record_id::INDEX && len > 0 && len % INDEX_ENTRY_LEN as u64 == 0 {
         if len > first_header_at - start {
-            return Err(bad(path, format!("the index record ({len} bytes) runs past the trailer")));
+            return Err(bad(
+                path,
+                format!("the index record ({len} bytes) runs past the trailer"),
+            ));
         }
         let index = read_at(&mut file, path, first_header_at - len, len)?;
         let mut records = Vec::new();
@@ -433,7 +437,11 @@ fn as_f64(w: Wire<'_>) -> Option<f64> {
 
 fn as_text(w: Wire<'_>) -> Option<String> {
     match w {
-        Wire::Bytes(b) => Some(String::from_utf8_lossy(b).trim_end_matches('\0').to_string()),
+        Wire::Bytes(b) => Some(
+            String::from_utf8_lossy(b)
+                .trim_end_matches('\0')
+                .to_string(),
+        ),
         _ => None,
     }
 }
@@ -448,7 +456,10 @@ fn as_u64(w: Wire<'_>) -> Option<u64> {
 /// Decode the metadata record.
 pub fn parse_metadata(path: &Path, buf: &[u8]) -> Result<Insta360Metadata> {
     let fields = protobuf_fields(buf).ok_or_else(|| {
-        bad(path, "the metadata record is not a valid protobuf message".into())
+        bad(
+            path,
+            "the metadata record is not a valid protobuf message".into(),
+        )
     })?;
     let mut m = Insta360Metadata::default();
     for (number, value) in fields {
@@ -470,7 +481,11 @@ pub fn parse_metadata(path: &Path, buf: &[u8]) -> Result<Insta360Metadata> {
             field::DIMENSION => {
                 if let Wire::Bytes(b) = value {
                     let sub = protobuf_fields(b).unwrap_or_default();
-                    let get = |n| sub.iter().find(|(k, _)| *k == n).and_then(|(_, v)| as_u64(*v));
+                    let get = |n| {
+                        sub.iter()
+                            .find(|(k, _)| *k == n)
+                            .and_then(|(_, v)| as_u64(*v))
+                    };
                     if let (Some(w), Some(h)) = (get(1), get(2)) {
                         m.dimension = Some((w as u32, h as u32));
                     }
@@ -482,7 +497,9 @@ pub fn parse_metadata(path: &Path, buf: &[u8]) -> Result<Insta360Metadata> {
             }
             field::ROLLING_SHUTTER_MS => m.rolling_shutter_ms = as_f64(value),
             field::GYRO_TIMESTAMP_MS => m.gyro_timestamp_ms = as_f64(value),
-            field::HAS_GYRO_TIMESTAMP => m.has_gyro_timestamp = as_u64(value).is_some_and(|v| v != 0),
+            field::HAS_GYRO_TIMESTAMP => {
+                m.has_gyro_timestamp = as_u64(value).is_some_and(|v| v != 0)
+            }
             field::IS_RAW_GYRO => m.is_raw_gyro = as_u64(value).is_some_and(|v| v != 0),
             field::GYRO_CONFIG => {
                 if let Wire::Bytes(b) = value {
@@ -543,10 +560,7 @@ pub fn parse_imu(path: &Path, meta: &Insta360Metadata, buf: &[u8]) -> Result<Vec
                     .into(),
             ));
         };
-        (
-            acc / RAW_ZERO * STANDARD_GRAVITY,
-            gyr / RAW_ZERO * deg,
-        )
+        (acc / RAW_ZERO * STANDARD_GRAVITY, gyr / RAW_ZERO * deg)
     } else {
         (STANDARD_GRAVITY, 1.0)
     };
@@ -554,7 +568,8 @@ pub fn parse_imu(path: &Path, meta: &Insta360Metadata, buf: &[u8]) -> Result<Vec
     for (k, s) in buf.chunks_exact(item).enumerate() {
         let timestamp = u64_le(s);
         let (accel, gyro) = if meta.is_raw_gyro {
-            let v = |i: usize| f64::from(u16::from_le_bytes([s[8 + 2 * i], s[9 + 2 * i]])) - RAW_ZERO;
+            let v =
+                |i: usize| f64::from(u16::from_le_bytes([s[8 + 2 * i], s[9 + 2 * i]])) - RAW_ZERO;
             (
                 [v(0) * accel_scale, v(1) * accel_scale, v(2) * accel_scale],
                 [v(3) * gyro_scale, v(4) * gyro_scale, v(5) * gyro_scale],
@@ -612,7 +627,10 @@ pub fn parse_exposures(path: &Path, buf: &[u8]) -> Result<Vec<ExposureEntry>> {
 /// Read a file's trailer and decode the records KIWI uses.
 pub fn read_telemetry(path: &Path) -> Result<Insta360Telemetry> {
     let trailer = read_trailer(path)?.ok_or_else(|| {
-        bad(path, "no trailer (the file does not end with the Insta360 magic)".into())
+        bad(
+            path,
+            "no trailer (the file does not end with the Insta360 magic)".into(),
+        )
     })?;
     let mut file = std::fs::File::open(path).map_err(|e| io(path, &e))?;
     let mut record = |id: u8| -> Result<Option<Vec<u8>>> {
@@ -620,7 +638,10 @@ pub fn read_telemetry(path: &Path) -> Result<Insta360Telemetry> {
             None => Ok(None),
             Some(r) if r.size > MAX_RECORD_BYTES => Err(bad(
                 path,
-                format!("record {id} claims {} bytes; the trailer is damaged", r.size),
+                format!(
+                    "record {id} claims {} bytes; the trailer is damaged",
+                    r.size
+                ),
             )),
             Some(r) => read_at(&mut file, path, r.offset, r.size).map(Some),
         }
@@ -663,7 +684,10 @@ impl Insta360Telemetry {
     /// The gyro-to-video offset the camera states (s; 0 when it measured none): an IMU sample's
     /// video time is its [`Insta360Telemetry::video_time`] minus this.
     pub fn gyro_offset_s(&self) -> f64 {
-        match (self.metadata.has_gyro_timestamp, self.metadata.gyro_timestamp_ms) {
+        match (
+            self.metadata.has_gyro_timestamp,
+            self.metadata.gyro_timestamp_ms,
+        ) {
             (true, Some(ms)) => ms * 1e-3,
             _ => 0.0,
         }

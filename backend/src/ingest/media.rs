@@ -240,7 +240,10 @@ pub fn frame_times(path: &Path, track: &VideoTrack) -> Result<Vec<f64>> {
     }
     pts.sort_unstable();
     let (n, d) = track.time_base;
-    Ok(pts.iter().map(|&v| v as f64 * n as f64 / d as f64).collect())
+    Ok(pts
+        .iter()
+        .map(|&v| v as f64 * n as f64 / d as f64)
+        .collect())
 }
 
 /// A running decoder that yields one track's frames as packed RGB.
@@ -267,7 +270,12 @@ pub fn decode_video(path: &Path, track: usize, width: u32, height: u32) -> Resul
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .spawn()
-        .map_err(|e| err(path, format!("cannot run ffmpeg ({e}); install it (`make deps`)")))?;
+        .map_err(|e| {
+            err(
+                path,
+                format!("cannot run ffmpeg ({e}); install it (`make deps`)"),
+            )
+        })?;
     let stdout = child
         .stdout
         .take()
@@ -308,7 +316,11 @@ impl FrameReader {
         if filled < buf.len() {
             return Err(err(
                 &self.path,
-                format!("frame {} ended after {filled} of {} bytes", self.frames, buf.len()),
+                format!(
+                    "frame {} ended after {filled} of {} bytes",
+                    self.frames,
+                    buf.len()
+                ),
             ));
         }
         self.frames += 1;
@@ -356,7 +368,12 @@ pub fn decode_audio(path: &Path, track: usize) -> Result<Vec<i16>> {
         .args(["-ac", "1", "-f", "s16le", "-acodec", "pcm_s16le", "-"])
         .stdin(Stdio::null())
         .output()
-        .map_err(|e| err(path, format!("cannot run ffmpeg ({e}); install it (`make deps`)")))?;
+        .map_err(|e| {
+            err(
+                path,
+                format!("cannot run ffmpeg ({e}); install it (`make deps`)"),
+            )
+        })?;
     if !out.status.success() {
         return Err(err(
             path,

@@ -166,10 +166,16 @@ pub fn ingest_episode(
             ));
         }
     }
-    let partial = root.join("episodes").join(format!(".ingest-{episode}.partial"));
+    let partial = root
+        .join("episodes")
+        .join(format!(".ingest-{episode}.partial"));
     if partial.exists() {
-        std::fs::remove_dir_all(&partial)
-            .map_err(|e| input(&partial, format!("cannot remove a stale partial ingest: {e}")))?;
+        std::fs::remove_dir_all(&partial).map_err(|e| {
+            input(
+                &partial,
+                format!("cannot remove a stale partial ingest: {e}"),
+            )
+        })?;
     }
     std::fs::create_dir_all(&partial)
         .map_err(|e| input(&partial, format!("cannot create: {e}")))?;
@@ -184,8 +190,12 @@ pub fn ingest_episode(
             }
         }
     }
-    std::fs::rename(&partial, &final_dir)
-        .map_err(|e| input(&final_dir, format!("cannot move the ingested episode here: {e}")))?;
+    std::fs::rename(&partial, &final_dir).map_err(|e| {
+        input(
+            &final_dir,
+            format!("cannot move the ingested episode here: {e}"),
+        )
+    })?;
     if !session.episodes.iter().any(|e| e.name == episode) {
         session.episodes.push(EpisodeConfig {
             name: episode.to_string(),
@@ -268,7 +278,10 @@ fn read_segment(files: &[PathBuf], insta360: bool) -> Result<Segment> {
         for track in media.video {
             let times = media::frame_times(f, &track)?;
             if times.is_empty() {
-                return Err(input(f, format!("video track {} has no frames", track.index)));
+                return Err(input(
+                    f,
+                    format!("video track {} has no frames", track.index),
+                ));
             }
             check_constant_rate(f, &track, &times)?;
             lenses.push((f.clone(), track, times));
@@ -397,7 +410,10 @@ fn ingest_camera(
     // Source lens order to KIWI lens names.
     let order: Vec<usize> = if names.len() == 2 {
         if o.front_lens > 1 {
-            return Err(input(first, format!("--front-lens {}: expected 0 or 1", o.front_lens)));
+            return Err(input(
+                first,
+                format!("--front-lens {}: expected 0 or 1", o.front_lens),
+            ));
         }
         vec![o.front_lens, 1 - o.front_lens]
     } else {
@@ -503,7 +519,9 @@ fn ingest_camera(
             name: name.into(),
             source: format!(
                 "{}#v{}",
-                path0.file_name().map_or_else(String::new, |n| n.to_string_lossy().into_owned()),
+                path0
+                    .file_name()
+                    .map_or_else(String::new, |n| n.to_string_lossy().into_owned()),
                 track0.index
             ),
             native_resolution: [nw, nh],
@@ -526,7 +544,11 @@ fn ingest_camera(
                 device_units: format!(
                     "time x{} s, gyro {}, accel {}",
                     o.imu_csv.time_unit.0,
-                    if o.imu_csv.gyro_deg_s { "deg/s" } else { "rad/s" },
+                    if o.imu_csv.gyro_deg_s {
+                        "deg/s"
+                    } else {
+                        "rad/s"
+                    },
                     if o.imu_csv.accel_g { "g" } else { "m/s2" }
                 ),
                 samples: s.len(),
@@ -568,7 +590,11 @@ fn ingest_camera(
     let meta = CameraMeta {
         camera: camera.into(),
         unit_id,
-        camera_model: if insta360 { model.clone() } else { "generic".into() },
+        camera_model: if insta360 {
+            model.clone()
+        } else {
+            "generic".into()
+        },
         mode: mode.clone(),
         fps,
         lenses: names.iter().map(|n| (*n).to_string()).collect(),
@@ -593,7 +619,9 @@ fn ingest_camera(
             lens_calibration_strings: t
                 .map(|t| t.metadata.lens_offsets.clone())
                 .unwrap_or_default(),
-            readout_time_s: t.and_then(|t| t.metadata.rolling_shutter_ms).map(|ms| ms * 1e-3),
+            readout_time_s: t
+                .and_then(|t| t.metadata.rolling_shutter_ms)
+                .map(|ms| ms * 1e-3),
         }),
     };
     layout.write_meta(&meta)?;
@@ -690,13 +718,19 @@ fn insta360_imu(
             "g, rad/s, ms".into()
         };
         for s in samples {
-            let Some(v) = t.video_time(s.timestamp) else { continue };
+            let Some(v) = t.video_time(s.timestamp) else {
+                continue;
+            };
             // Device times count from the segment's first frame.
             let time = seg_start[k] + v - offset;
             if out.last().is_some_and(|p| time <= p.t) {
                 continue;
             }
-            out.push(ImuSample::new(time, axes.apply(s.gyro), axes.apply(s.accel)));
+            out.push(ImuSample::new(
+                time,
+                axes.apply(s.gyro),
+                axes.apply(s.accel),
+            ));
         }
     }
     let rec = ImuRecording {
@@ -729,13 +763,18 @@ fn assemble_audio(segments: &[Segment], seg_start: &[f64]) -> Result<(Vec<i16>, 
     let mut out: Vec<i16> = Vec::new();
     let mut rate = 0u32;
     for (k, seg) in segments.iter().enumerate() {
-        let Some((path, track)) = &seg.audio else { continue };
+        let Some((path, track)) = &seg.audio else {
+            continue;
+        };
         if rate == 0 {
             rate = track.rate_hz;
         } else if rate != track.rate_hz {
             return Err(input(
                 path,
-                format!("audio at {} Hz, the first segment's at {rate} Hz", track.rate_hz),
+                format!(
+                    "audio at {} Hz, the first segment's at {rate} Hz",
+                    track.rate_hz
+                ),
             ));
         }
         let samples = media::decode_audio(path, track.index)?;
@@ -805,7 +844,12 @@ fn mode_from_calibration(cal_dir: &Path, fps: f64, camera: &str) -> Result<Strin
 /// Where a lens's frames go: a video encoder or a folder of PNGs.
 enum LensSink {
     Video(VideoStreamWriter),
-    Images { dir: PathBuf, width: u32, height: u32, files: Vec<String> },
+    Images {
+        dir: PathBuf,
+        width: u32,
+        height: u32,
+        files: Vec<String>,
+    },
 }
 
 impl LensSink {
