@@ -201,69 +201,6 @@ impl VideoReader {
                 ),
             ));
         }
-        let cloned;
-        let mat = if self.buffer.is_continuous() {
-            &self.buffer
-        } else {
-            cloned = self
-                .buffer
-                .try_clone()
-                .map_err(|e| video_err(&self.path, format!("frame {i}: {e}")))?;
-            &cloned
-        };
-        let bytes = mat
-            .data_bytes()
-            .map_err(|e| video_err(&self.path, format!("frame {i}: {e}")))?
-            .to_vec();
-        self.next += 1;
-        Ok(())
-    }
-
-    fn ended_early(&self, i: usize) -> BackendError {
-        video_err(
-            &self.path,
-            format!(
-                "the video ends at frame {i}, video.json and frames.csv list {} frames; the file \
-                 is truncated or is not this stream's: re-write the stream",
-                self.frames
-            ),
-        )
-    }
-
-    /// Decode the next frame; returns it with its container time relative to the first frame
-    /// (s).
-    pub fn read(&mut self) -> Result<(ColorImage, f64)> {
-        let i = self.next;
-        if i >= self.frames {
-            return Err(video_err(
-                &self.path,
-                format!("read past the last frame ({} frames)", self.frames),
-            ));
-        }
-        let got = self
-            .capture
-            .read(&mut self.buffer)
-            .map_err(|e| video_err(&self.path, format!("frame {i}: cannot decode: {e}")))?;
-        if !got || self.buffer.empty() {
-            return Err(self.ended_early(i));
-        }
-        let time_s = self
-            .capture
-            .get(CAP_PROP_POS_MSEC)
-            .map_err(|e| video_err(&self.path, format!("frame {i}: no time: {e}")))?
-            * 1e-3;
-        let (w, h) = (self.buffer.cols() as usize, self.buffer.rows() as usize);
-        if (w, h) != (self.width, self.height) || self.buffer.channels() != 3 {
-            return Err(video_err(
-                &self.path,
-                format!(
-                    "frame {i}: expected a {}x{} colour frame, decoded {w}x{h} with {} channels",
-                    self.width,
-                    self.height,
-                    self.buffer.channels()
-                ),
-            ));
-        }
         let bytes = if self.buffer.is_continuous() {
             self.buffer
                 .data_bytes()
