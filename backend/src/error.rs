@@ -20,10 +20,9 @@ pub enum BackendError {
     /// An Insta360 recording has no gyro record (some X5 firmware versions write none).
     #[error(
         "{file}: no gyro record in the file's metadata trailer ({model}, firmware {firmware}). Some \
-         Insta360 X5 firmware versions (1.10.7 to 1.10.11 are reported) record video without \
-         IMU samples; without them KIWI cannot recover scale and gravity. Update the camera's \
-         firmware and record again, or give an IMU log of the same recording with \
-         --{camera}-imu FILE (kiwi ingest's generic path)"
+         Insta360 X5 firmware versions record video without IMU samples; without them KIWI \
+         cannot recover scale and gravity. Update the camera's firmware and record again, or give \
+         an IMU log of the same recording with --{camera}-imu FILE (kiwi ingest's generic path)"
     )]
     NoGyroRecord {
         /// The recording.

@@ -345,7 +345,11 @@ impl FrameSource {
 fn read_checked(reader: &mut VideoReader, i: usize, frames: &[FrameRecord]) -> Result<ColorImage> {
     let (img, time_s) = reader.read()?;
     let expected = frames[i].t - frames[0].t;
-    if (time_s - expected).abs() > FRAME_TIME_TOLERANCE_S {
+    // A frame without a container time (drained from the decoder at the end) is known by its
+    // position: the reader counts frames from the checked ones before it.
+    if let Some(time_s) = time_s
+        && (time_s - expected).abs() > FRAME_TIME_TOLERANCE_S
+    {
         return Err(input_err(
             reader.path(),
             format!(

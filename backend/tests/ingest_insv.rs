@@ -68,13 +68,12 @@ fn write_wav(path: &Path, samples: &[i16]) {
     w.finalize().unwrap();
 }
 
-/// A recording file: `tracks` colour video tracks of `frames` frames from frame `first` of
-/// the pattern, an audio track unless `audio` is None.
+/// A recording file: one constant-colour video track of `frames` frames per colour, and an
+/// audio track unless `audio` is None.
 fn recording(
     path: &Path,
     colours: &[&str],
     frames: usize,
-    first: usize,
     audio: Option<&Path>,
     extra_video_args: &[&str],
 ) {
@@ -85,7 +84,12 @@ fn recording(
                 "-f".into(),
                 "lavfi".into(),
                 "-i".into(),
-                format!("color=c={c}:s={SIDE}x{SIDE}:r={RATE},format=yuv420p"),
+                // Each track ends after `frames` frames by itself (an output frame limit
+                // would end the file when the first track reaches it, one frame short on the
+                // others).
+                format!(
+                    "color=c={c}:s={SIDE}x{SIDE}:r={RATE},format=yuv420p,trim=end_frame={frames}"
+                ),
             ]
             .into_iter(),
         );
@@ -108,11 +112,9 @@ fn recording(
         args.extend(["-map".into(), format!("{}:a", colours.len())]);
         args.extend(["-c:a".into(), "pcm_s16le".into()]);
     }
-    let _ = first;
     args.extend(
         [
-            "-frames:v",
-            &frames.to_string(),
+            "-shortest",
             "-c:v",
             "libx264",
             "-preset",
@@ -162,8 +164,9 @@ fn trailer(
         ranges: (32, 2000),
         offset_v3: "2_1.9_100_100_48_48_0_0_90_0_0_0_0.1_0.2_0.3_0_0_192_96_113_1.9_100_100_144_48_0_0_90_0_0_-0.03_0.1_0.2_0.3_0_0_192_96_113_197632".into(),
         imu,
+        // Two entries before the first frame (µs clock; a trailer on another clock replaces them).
         exposures: (0..FRAMES as u64 + 4)
-            .map(|k| ((first_frame_us as u64 - 2 * 33_367) + k * 33_367, 0.004))
+            .map(|k| ((first_frame_us as u64).saturating_sub(2 * 33_367) + k * 33_367, 0.004))
             .collect(),
         layout,
         in_box: true,
@@ -233,7 +236,7 @@ fn an_x5_recording_and_a_go3_recording_are_ingested_exactly() {
     write_wav(&wav, &audio);
     // The X5: both lenses in one file (track 0 red, track 1 blue), indexed trailer in a box.
     let x5 = tmp.path().join("VID_20260101_120000_00_001.insv");
-    recording(&x5, &["red", "blue"], FRAMES, 0, Some(&wav), &[]);
+    recording(&x5, &["red", "blue"], FRAMES, Some(&wav), &[]);
     let imu = raw_imu(FIRST_FRAME_US, FRAMES);
     trailer(
         "Insta360 X5",
@@ -245,7 +248,7 @@ fn an_x5_recording_and_a_go3_recording_are_ingested_exactly() {
     .unwrap();
     // The GO 3: one lens, float IMU (ms clock), back-to-back trailer without a box.
     let go3 = tmp.path().join("VID_20260101_120000_00_002.mp4");
-    recording(&go3, &["green"], FRAMES, 0, Some(&wav), &[]);
+    recording(&go3, &["green"], FRAMES, Some(&wav), &[]);
     let float_imu: Vec<(u64, [f64; 3], [f64; 3])> = (0..120u64)
         .map(|k| {
             let f = k as f64;
@@ -403,7 +406,7 @@ fn split_recordings_and_lens_file_pairs_are_joined() {
             let f = tmp
                 .path()
                 .join(format!("VID_20260101_120000_{code}_{seq:03}.insv"));
-            recording(&f, &[colour], frames, 0, Some(&wav), &[]);
+            recording(&f, &[colour], frames, Some(&wav), &[]);
             trailer(
                 "Insta360 X5",
                 TrailerImu::Raw(raw_imu(first_us, frames)),
@@ -488,7 +491,7 @@ fn known_field_failures_have_named_errors() {
 
     // X5 firmware that writes no gyro record.
     let no_gyro = tmp.path().join("VID_20260101_120000_00_001.insv");
-    recording(&no_gyro, &["red", "blue"], 10, 0, Some(&wav), &[]);
+    recording(&no_gyro, &["red", "blue"], 10, Some(&wav), &[]);
     trailer(
         "Insta360 X5",
         TrailerImu::None,
@@ -506,7 +509,7 @@ fn known_field_failures_have_named_errors() {
 
     // No audio track.
     let silent = tmp.path().join("VID_20260101_120000_00_002.insv");
-    recording(&silent, &["red", "blue"], 10, 0, None, &[]);
+    recording(&silent, &["red", "blue"], 10, None, &[]);
     trailer(
         "Insta360 X5",
         TrailerImu::Raw(raw_imu(FIRST_FRAME_US, 10)),
@@ -520,7 +523,7 @@ fn known_field_failures_have_named_errors() {
 
     // One lens track only.
     let one = tmp.path().join("VID_20260101_120000_00_003.insv");
-    recording(&one, &["red"], 10, 0, Some(&wav), &[]);
+    recording(&one, &["red"], 10, Some(&wav), &[]);
     trailer(
         "Insta360 X5",
         TrailerImu::Raw(raw_imu(FIRST_FRAME_US, 10)),
@@ -548,7 +551,6 @@ fn known_field_failures_have_named_errors() {
         &vfr,
         &["red", "blue"],
         20,
-        0,
         Some(&wav),
         &[
             "-vf",

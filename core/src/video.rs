@@ -103,6 +103,9 @@ impl VideoCodec {
                 crf.to_string(),
                 "-g".into(),
                 H264_KEYFRAME_INTERVAL.to_string(),
+                // No B-frames: each frame decodes from its own packet, with its own time.
+                "-bf".into(),
+                "0".into(),
                 "-pix_fmt".into(),
                 "yuv444p".into(),
             ],

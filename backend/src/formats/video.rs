@@ -168,8 +168,8 @@ impl VideoReader {
     }
 
     /// Decode the next frame; returns it with its container time relative to the first frame
-    /// (s).
-    pub fn read(&mut self) -> Result<(ColorImage, f64)> {
+    /// (s), when the decoder gives one.
+    pub fn read(&mut self) -> Result<(ColorImage, Option<f64>)> {
         let i = self.next;
         if i >= self.frames {
             return Err(video_err(
@@ -184,11 +184,13 @@ impl VideoReader {
         if !got || self.buffer.empty() {
             return Err(self.ended_early(i));
         }
-        let time_s = self
+        let msec = self
             .capture
             .get(CAP_PROP_POS_MSEC)
-            .map_err(|e| video_err(&self.path, format!("frame {i}: no time: {e}")))?
-            * 1e-3;
+            .map_err(|e| video_err(&self.path, format!("frame {i}: no time: {e}")))?;
+        // OpenCV reports 0 for frames it drains from the decoder after the last packet (the
+        // delayed frames of a stream with B-frames): no time known.
+        let time_s = (i == 0 || msec != 0.0).then_some(msec * 1e-3);
         let (w, h) = (self.buffer.cols() as usize, self.buffer.rows() as usize);
         if (w, h) != (self.width, self.height) || self.buffer.channels() != 3 {
             return Err(video_err(
