@@ -2,8 +2,9 @@
 //! process, OpenCV's and ffmpeg's decoder threads included) for the PNG folder and the same
 //! frames as video (utvideo and FFV1 lossless, H.264 crf 12), sequential in luma as the vision
 //! reads them, and random access walking backwards as the localizer's backward pass does; plus
-//! bytes per frame on disk. `cargo bench -p kiwi-backend --bench frames` (set KIWI_BENCH_FRAMES
-//! to change the 150-frame stream).
+//! bytes per frame on disk, and each codec's round trip against the PNGs (largest difference
+//! and PSNR over the BGR bytes). `cargo bench --workspace --bench frames` (set
+//! KIWI_BENCH_FRAMES to change the 150-frame stream).
 
 #![allow(clippy::unwrap_used, clippy::expect_used, missing_docs)]
 
@@ -70,6 +71,27 @@ fn measure(name: &str, lens_dir: &Path) {
     );
 }
 
+/// Largest absolute difference and PSNR (dB; infinite when identical) of every frame of
+/// `video` against the same frame of `png`, over the BGR bytes.
+fn round_trip(png: &FrameSource, video: &FrameSource) -> (u8, f64) {
+    let mut worst = 0u8;
+    let (mut sq, mut count) = (0.0f64, 0usize);
+    video
+        .for_each_color(|i, img| {
+            let reference = png.load_color(i).unwrap();
+            for (a, b) in img.bgr.iter().zip(&reference.bgr) {
+                let d = a.abs_diff(*b);
+                worst = worst.max(d);
+                sq += f64::from(d) * f64::from(d);
+            }
+            count += img.bgr.len();
+            Ok(())
+        })
+        .unwrap();
+    let mse = sq / count as f64;
+    (worst, 10.0 * (255.0f64 * 255.0 / mse).log10())
+}
+
 fn main() {
     let frames: usize = std::env::var("KIWI_BENCH_FRAMES")
         .ok()
@@ -108,5 +130,13 @@ fn main() {
         }
         w.finish(&times).unwrap();
         measure(codec.name(), &dir);
+        let (worst, psnr) = round_trip(
+            &FrameSource::open(&png).unwrap(),
+            &FrameSource::open(&dir).unwrap(),
+        );
+        println!(
+            "{:<10} round trip vs PNG: largest difference {worst} DN, PSNR {psnr:.1} dB",
+            codec.name()
+        );
     }
 }
