@@ -740,7 +740,7 @@ pub fn calibrate_tool(
     let mut hinge =
         tag.translation.vector + n * def.marker.face_offset_m + d0 * def.marker.behind_hinge_m;
     let tag_hinge = hinge;
-    let (mut jaw_lines, mut dot_rms) = (0usize, f64::NAN);
+    let (mut jaw_lines, mut dot_rms) = (0usize, None);
     for _ in 0..HINGE_PASSES {
         let current = with_body(def, hinge, d0, n);
         let est = GripperEstimator::new(camera, &current)?;
@@ -759,7 +759,7 @@ pub fn calibrate_tool(
             Rotation3::from_axis_angle(&nalgebra::Unit::new_normalize(e_u.cross(&e_v)), s.rotation)
                 * d0;
         jaw_lines = s.lines;
-        dot_rms = s.rms;
+        dot_rms = Some(s.rms);
     }
     // The plane itself from the dots' known spacing over all frames.
     let mut n = n;
@@ -783,7 +783,7 @@ pub fn calibrate_tool(
         }
         (hinge, d0, n) = (h, d, nn);
         jaw_lines = jaws.len();
-        dot_rms = fit.rms_m;
+        dot_rms = Some(fit.rms_m);
     }
     let calibrated = with_body(def, hinge, d0, n);
     let body = calibrated.front_from_body();
