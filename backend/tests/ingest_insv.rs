@@ -79,31 +79,23 @@ fn recording(
 ) {
     let mut args: Vec<String> = Vec::new();
     for c in colours {
-        args.extend(
-            [
-                "-f".into(),
-                "lavfi".into(),
-                "-i".into(),
-                // Each track ends after `frames` frames by itself (an output frame limit
-                // would end the file when the first track reaches it, one frame short on the
-                // others).
-                format!(
-                    "color=c={c}:s={SIDE}x{SIDE}:r={RATE},format=yuv420p,trim=end_frame={frames}"
-                ),
-            ]
-            .into_iter(),
-        );
+        args.extend([
+            "-f".into(),
+            "lavfi".into(),
+            "-i".into(),
+            // Each track ends after `frames` frames by itself (an output frame limit
+            // would end the file when the first track reaches it, one frame short on the
+            // others).
+            format!("color=c={c}:s={SIDE}x{SIDE}:r={RATE},format=yuv420p,trim=end_frame={frames}"),
+        ]);
     }
     if let Some(a) = audio {
-        args.extend(
-            [
-                "-itsoffset".into(),
-                AUDIO_DELAY_S.to_string(),
-                "-i".into(),
-                a.display().to_string(),
-            ]
-            .into_iter(),
-        );
+        args.extend([
+            "-itsoffset".into(),
+            AUDIO_DELAY_S.to_string(),
+            "-i".into(),
+            a.display().to_string(),
+        ]);
     }
     for k in 0..colours.len() {
         args.extend(["-map".into(), format!("{k}:v")]);

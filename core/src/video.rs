@@ -205,17 +205,17 @@ impl VideoStreamWriter {
             ));
         }
         let Some(stdin) = self.stdin.as_mut() else {
-            return Err(self.failed("the encoder's input is closed".into()));
+            return Err(self.failed("the encoder's input is closed"));
         };
         if let Err(e) = stdin.write_all(rgb) {
             let message = format!("writing frame {}: {e}", self.frames);
-            return Err(self.failed(message));
+            return Err(self.failed(&message));
         }
         self.frames += 1;
         Ok(())
     }
 
-    fn failed(&mut self, what: String) -> CoreError {
+    fn failed(&mut self, what: &str) -> CoreError {
         self.stdin = None;
         let _ = self.child.kill();
         let _ = self.child.wait();
@@ -241,7 +241,7 @@ impl VideoStreamWriter {
                 times.len(),
                 self.frames
             );
-            return Err(self.failed(message));
+            return Err(self.failed(&message));
         }
         drop(self.stdin.take());
         let status = self.child.wait().map_err(|e| CoreError::Io {

@@ -78,7 +78,7 @@ pub struct IngestArgs {
 }
 
 /// Run `kiwi ingest`.
-pub fn run_ingest_cmd(args: IngestArgs) -> Result<()> {
+pub fn run_ingest_cmd(args: &IngestArgs) -> Result<()> {
     let gyro_deg_s = match args.gyro_unit.as_str() {
         "rad/s" => false,
         "deg/s" => true,

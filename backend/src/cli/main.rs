@@ -108,7 +108,7 @@ fn main() -> Result<()> {
         Command::Localize(args) => vision::run_localize(&args)?,
         Command::Gripper(args) => gripper::run_gripper(&args)?,
         Command::Inspect(args) => inspect::run_inspect_cmd(args)?,
-        Command::Ingest(args) => ingest::run_ingest_cmd(args)?,
+        Command::Ingest(args) => ingest::run_ingest_cmd(&args)?,
     }
     Ok(())
 }

@@ -51,9 +51,8 @@ impl AxisMap {
         let mut axes = [(0usize, 1i8); 3];
         for (k, p) in parts.iter().enumerate() {
             let (sign, axis) = match p.as_bytes() {
-                [b'+', a] => (1, *a),
+                [b'+', a] | [a] => (1, *a),
                 [b'-', a] => (-1, *a),
-                [a] => (1, *a),
                 _ => {
                     return Err(format!(
                         "`{p}` in `{text}`: expected +x, -x, +y, -y, +z or -z"

@@ -214,7 +214,7 @@ pub struct Insta360Telemetry {
 /// Standard gravity (m/s² per g).
 pub const STANDARD_GRAVITY: f64 = 9.806_65;
 
-fn bad(path: &Path, message: String) -> BackendError {
+fn bad(path: &Path, message: &str) -> BackendError {
     BackendError::Input {
         path: path.to_path_buf(),
         message: format!("Insta360 metadata trailer: {message}"),
@@ -276,7 +276,7 @@ pub fn read_trailer(path: &Path) -> Result<Option<Trailer>> {
     {
         return Err(bad(
             path,
-            format!(
+            &format!(
                 "the footer gives a trailer of {trailer_size} bytes in a {size}-byte file; the \
                  file is damaged or truncated"
             ),
@@ -290,7 +290,7 @@ pub fn read_trailer(path: &Path) -> Result<Option<Trailer>> {
         if len > first_header_at - start {
             return Err(bad(
                 path,
-                format!("the index record ({len} bytes) runs past the trailer"),
+                &format!("the index record ({len} bytes) runs past the trailer"),
             ));
         }
         let index = read_at(&mut file, path, first_header_at - len, len)?;
@@ -304,7 +304,7 @@ pub fn read_trailer(path: &Path) -> Result<Option<Trailer>> {
             if roffset + rsize > trailer_size {
                 return Err(bad(
                     path,
-                    format!(
+                    &format!(
                         "index entry {k} (record {rid}) spans bytes {roffset}..{} of a \
                          {trailer_size}-byte trailer",
                         roffset + rsize
@@ -334,7 +334,7 @@ pub fn read_trailer(path: &Path) -> Result<Option<Trailer>> {
         if rsize == 0 || rsize > header_at - start {
             return Err(bad(
                 path,
-                format!(
+                &format!(
                     "record {rid} at byte {header_at} claims {rsize} bytes, {} are left before \
                      the trailer's start; the trailer is damaged",
                     header_at - start
@@ -354,7 +354,7 @@ pub fn read_trailer(path: &Path) -> Result<Option<Trailer>> {
         if offset < start + RECORD_HEADER_LEN {
             return Err(bad(
                 path,
-                format!(
+                &format!(
                     "the record walk ends {} bytes after the trailer's start, not on it; the \
                      trailer is damaged",
                     offset - start
@@ -455,12 +455,8 @@ fn as_u64(w: Wire<'_>) -> Option<u64> {
 
 /// Decode the metadata record.
 pub fn parse_metadata(path: &Path, buf: &[u8]) -> Result<Insta360Metadata> {
-    let fields = protobuf_fields(buf).ok_or_else(|| {
-        bad(
-            path,
-            "the metadata record is not a valid protobuf message".into(),
-        )
-    })?;
+    let fields = protobuf_fields(buf)
+        .ok_or_else(|| bad(path, "the metadata record is not a valid protobuf message"))?;
     let mut m = Insta360Metadata::default();
     for (number, value) in fields {
         match number {
@@ -498,7 +494,7 @@ pub fn parse_metadata(path: &Path, buf: &[u8]) -> Result<Insta360Metadata> {
             field::ROLLING_SHUTTER_MS => m.rolling_shutter_ms = as_f64(value),
             field::GYRO_TIMESTAMP_MS => m.gyro_timestamp_ms = as_f64(value),
             field::HAS_GYRO_TIMESTAMP => {
-                m.has_gyro_timestamp = as_u64(value).is_some_and(|v| v != 0)
+                m.has_gyro_timestamp = as_u64(value).is_some_and(|v| v != 0);
             }
             field::IS_RAW_GYRO => m.is_raw_gyro = as_u64(value).is_some_and(|v| v != 0),
             field::GYRO_CONFIG => {
@@ -540,10 +536,10 @@ pub fn parse_imu(path: &Path, meta: &Insta360Metadata, buf: &[u8]) -> Result<Vec
     } else {
         FLOAT_IMU_SAMPLE_LEN
     };
-    if buf.len() % item != 0 {
+    if !buf.len().is_multiple_of(item) {
         return Err(bad(
             path,
-            format!(
+            &format!(
                 "the gyro record holds {} bytes, not a whole number of {item}-byte {} samples",
                 buf.len(),
                 if meta.is_raw_gyro { "raw" } else { "float" }
@@ -556,8 +552,7 @@ pub fn parse_imu(path: &Path, meta: &Insta360Metadata, buf: &[u8]) -> Result<Vec
             return Err(bad(
                 path,
                 "raw IMU samples but no accelerometer and gyroscope full-scale ranges in the \
-                 metadata (field 65); cannot convert them to SI units"
-                    .into(),
+                 metadata (field 65); cannot convert them to SI units",
             ));
         };
         (acc / RAW_ZERO * STANDARD_GRAVITY, gyr / RAW_ZERO * deg)
@@ -582,14 +577,14 @@ pub fn parse_imu(path: &Path, meta: &Insta360Metadata, buf: &[u8]) -> Result<Vec
             )
         };
         if !(accel.iter().chain(&gyro).all(|x| x.is_finite())) {
-            return Err(bad(path, format!("IMU sample {k} is not finite")));
+            return Err(bad(path, &format!("IMU sample {k} is not finite")));
         }
         if let Some(prev) = out.last().map(|p: &DeviceImuSample| p.timestamp)
             && timestamp <= prev
         {
             return Err(bad(
                 path,
-                format!(
+                &format!(
                     "IMU sample {k}: time stamp {timestamp} is not after the previous {prev}; the \
                      gyro record is damaged"
                 ),
@@ -606,10 +601,10 @@ pub fn parse_imu(path: &Path, meta: &Insta360Metadata, buf: &[u8]) -> Result<Vec
 
 /// Decode an exposure record.
 pub fn parse_exposures(path: &Path, buf: &[u8]) -> Result<Vec<ExposureEntry>> {
-    if buf.len() % EXPOSURE_ENTRY_LEN != 0 {
+    if !buf.len().is_multiple_of(EXPOSURE_ENTRY_LEN) {
         return Err(bad(
             path,
-            format!(
+            &format!(
                 "the exposure record holds {} bytes, not a whole number of 16-byte entries",
                 buf.len()
             ),
@@ -629,7 +624,7 @@ pub fn read_telemetry(path: &Path) -> Result<Insta360Telemetry> {
     let trailer = read_trailer(path)?.ok_or_else(|| {
         bad(
             path,
-            "no trailer (the file does not end with the Insta360 magic)".into(),
+            "no trailer (the file does not end with the Insta360 magic)",
         )
     })?;
     let mut file = std::fs::File::open(path).map_err(|e| io(path, &e))?;
@@ -638,7 +633,7 @@ pub fn read_telemetry(path: &Path) -> Result<Insta360Telemetry> {
             None => Ok(None),
             Some(r) if r.size > MAX_RECORD_BYTES => Err(bad(
                 path,
-                format!(
+                &format!(
                     "record {id} claims {} bytes; the trailer is damaged",
                     r.size
                 ),
@@ -651,7 +646,7 @@ pub fn read_telemetry(path: &Path) -> Result<Insta360Telemetry> {
         None => {
             return Err(bad(
                 path,
-                "no metadata record (id 1): not a recording KIWI can read".into(),
+                "no metadata record (id 1): not a recording KIWI can read",
             ));
         }
     };

@@ -446,10 +446,9 @@ fn ingest_camera(
                     &groups[k][0],
                     format!(
                         "this segment starts {device_gap:.4} s after the previous one on the \
-                         camera's clock, but the previous one holds {:.4} s of frames: the \
-                         segments are not one continuous recording (give each recording's \
-                         segments, all of them, in one --{camera})",
-                        expected
+                         camera's clock, but the previous one holds {expected:.4} s of frames: \
+                         the segments are not one continuous recording (give each recording's \
+                         segments, all of them, in one --{camera})"
                     ),
                 ));
             }
@@ -669,22 +668,19 @@ fn insta360_imu(
     seg_start: &[f64],
     o: &IngestOptions,
 ) -> Result<(Vec<ImuSample>, ImuRecording)> {
-    let axes = match o.imu_axes.or_else(|| AxisMap::for_model(model)) {
-        Some(a) => a,
-        None => {
-            return Err(input(
-                segments[0].lenses[0].0.as_path(),
-                format!(
-                    "camera model `{model}` has no IMU axis map in KIWI's table (known: {}); give \
+    let Some(axes) = o.imu_axes.or_else(|| AxisMap::for_model(model)) else {
+        return Err(input(
+            segments[0].lenses[0].0.as_path(),
+            format!(
+                "camera model `{model}` has no IMU axis map in KIWI's table (known: {}); give \
                      one with --imu-axes (KIWI x,y,z as signed device axes, e.g. -y,-z,+x)",
-                    imu::MODEL_AXES
-                        .iter()
-                        .map(|(m, _)| *m)
-                        .collect::<Vec<_>>()
-                        .join(", ")
-                ),
-            ));
-        }
+                imu::MODEL_AXES
+                    .iter()
+                    .map(|(m, _)| *m)
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            ),
+        ));
     };
     let mut out: Vec<ImuSample> = Vec::new();
     let mut offset = 0.0;
