@@ -23,14 +23,14 @@ pub const H264_KEYFRAME_INTERVAL: u32 = 30;
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum VideoCodec {
     /// Ut Video, planar RGB: lossless (frames decode bit-identical to the PNGs they replace),
-    /// intra-only, the fastest to decode; about 15 % smaller than fast-compressed PNGs on
-    /// simulated frames.
+    /// intra-only, the fastest to decode; about the size of the PNGs (2 % smaller on simulated
+    /// 960 px frames, docs/ingest.md).
     Utvideo,
-    /// FFV1 level 3, planar RGB, every frame a keyframe: lossless and about 25 % smaller than
-    /// PNGs, but decodes about four times slower than Ut Video.
+    /// FFV1 level 3, planar RGB, every frame a keyframe: lossless and about 18 % smaller than
+    /// PNGs, but decodes about five times slower than Ut Video.
     Ffv1,
     /// H.264 (libx264), 4:4:4 chroma, constant quality `crf` (0 is lossless in luma and chroma
-    /// planes, but not through the RGB ↔ YUV conversion): 15–40× smaller than PNGs at crf 12–16.
+    /// planes, but not through the RGB ↔ YUV conversion): about 20× smaller than PNGs at crf 12.
     H264 {
         /// x264's constant rate factor (lower is better; 12 is visually lossless).
         crf: u8,
