@@ -66,6 +66,7 @@ bench: deps
 	cargo bench -p kiwi-calib --bench certify
 	cargo bench -p kiwi-backend --bench fuse
 	cargo bench -p kiwi-backend --bench vision
+	cargo bench -p kiwi-backend --bench frames
 
 hardware: deps
 	cargo run --release -p kiwi-calib -- hardware generate

@@ -17,6 +17,72 @@ pub enum BackendError {
         /// What is wrong and what to do.
         message: String,
     },
+    /// An Insta360 recording has no gyro record (some X5 firmware versions write none).
+    #[error(
+        "{file}: no gyro record in the file's metadata trailer ({model}, firmware {firmware}). Some \
+         Insta360 X5 firmware versions record video without IMU samples; without them KIWI \
+         cannot recover scale and gravity. Update the camera's firmware and record again, or give \
+         an IMU log of the same recording with --{camera}-imu FILE (kiwi ingest's generic path)"
+    )]
+    NoGyroRecord {
+        /// The recording.
+        file: std::path::PathBuf,
+        /// Camera model as the file states it.
+        model: String,
+        /// Firmware as the file states it.
+        firmware: String,
+        /// Camera slot (`left`, `right`, `head`).
+        camera: String,
+    },
+    /// A recording has no audio track (the cameras are synchronized by their audio).
+    #[error(
+        "{file}: no audio track. KIWI places the cameras on one timeline from their sound, so \
+         every camera must record audio: check that the camera's microphone is on for this \
+         mode (some modes, e.g. timelapse and high-frame-rate slow motion, record none) and \
+         record again"
+    )]
+    MissingAudio {
+        /// The recording.
+        file: std::path::PathBuf,
+    },
+    /// A lens track's frame times are not evenly spaced.
+    #[error(
+        "{file}, video track {track}: variable frame rate: frame {frame} comes {interval_s:.6} s \
+         after the one before, the nominal period is {period_s:.6} s. KIWI needs every frame \
+         of a lens at a constant rate (dropped frames or a variable-rate mode break the camera \
+         and IMU timing); record in a fixed-frame-rate mode and check the card's write speed"
+    )]
+    VariableFrameRate {
+        /// The recording.
+        file: std::path::PathBuf,
+        /// Video track index in the file.
+        track: usize,
+        /// First frame whose interval is off.
+        frame: usize,
+        /// Its interval (s).
+        interval_s: f64,
+        /// The nominal frame period (s).
+        period_s: f64,
+    },
+    /// A recording lacks a lens track the camera slot needs.
+    #[error(
+        "{files}: {found} lens video track(s) found, the {camera} camera needs {expected} \
+         ({lenses}). {fix}"
+    )]
+    MissingLensTrack {
+        /// The recording's files.
+        files: String,
+        /// Camera slot (`left`, `right`, `head`).
+        camera: String,
+        /// Lens tracks found.
+        found: usize,
+        /// Lens tracks needed.
+        expected: usize,
+        /// The lens names needed.
+        lenses: String,
+        /// What to do.
+        fix: String,
+    },
     /// A computer-vision step failed (feature extraction, geometry, bundle adjustment, maps).
     #[error("{context}: {message}")]
     Vision {

@@ -70,6 +70,7 @@ pub fn inspect_session(session_toml: &Path) -> Result<SessionReport> {
         let mut lenses = Vec::new();
         for camera in session.camera_names() {
             for (lens, n) in layout.validate_camera(camera)? {
+                check_video_stream(&layout.lens_dir(camera, &lens))?;
                 lenses.push((camera.to_string(), lens, n));
             }
         }
@@ -84,4 +85,18 @@ pub fn inspect_session(session_toml: &Path) -> Result<SessionReport> {
         cameras,
         episodes,
     })
+}
+
+/// Check a video-backed lens stream end to end: every frame decodes, at the time `frames.csv`
+/// gives it, and the video holds exactly the frames listed. An image stream passes untouched
+/// (its files are checked by [`EpisodeLayout::validate_camera`]).
+pub fn check_video_stream(lens_dir: &Path) -> Result<()> {
+    if !matches!(
+        kiwi_core::layout::LensStorage::of(lens_dir)?,
+        kiwi_core::layout::LensStorage::Video(_)
+    ) {
+        return Ok(());
+    }
+    let source = crate::frames::FrameSource::open(lens_dir)?;
+    source.for_each_color(|_, _| Ok(()))
 }

@@ -4,13 +4,16 @@
 //! localization, §4.2), [`metric`] (metric recovery), [`placement`] (eq. 2),
 //! [`observations`] (eq. 3), [`fusion`] (eq. 4), [`gripper`] (§4.3.1) and [`outputs`] with
 //! [`quality`] (the deliverables and how far to trust them). [`pipeline`] runs them as one
-//! graph (`kiwi run`); [`formats`] holds the files the stages exchange; [`inspect`] checks a
-//! session before anything runs.
+//! graph (`kiwi run`); [`formats`] holds the files the stages exchange; [`frames`] reads a lens
+//! stream's frames (images or video) for every stage; [`ingest`] turns camera files into a
+//! prepared episode; [`inspect`] checks a session before anything runs.
 
 pub mod error;
 pub mod formats;
+pub mod frames;
 pub mod fusion;
 pub mod gripper;
+pub mod ingest;
 pub mod inspect;
 pub mod metric;
 pub mod observations;

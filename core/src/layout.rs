@@ -12,7 +12,8 @@
 //!       audio.wav
 //!       <lens>/                     front | rear (X5), main (GO 3)
 //!         frames.csv                t,file  (t in s on the camera clock, file relative to the lens folder)
-//!         frames/000000.png …
+//!         frames/000000.png …       an image stream, or
+//!         video.json + video.mkv    a video stream: frames.csv's file is `video.mkv#<index>`
 //!     work/<stage>/                 stage outputs and their manifest
 //!     truth/                        simulator ground truth; never read by algorithms
 //! ```
@@ -29,6 +30,12 @@ use crate::io::{read_text, write_atomic, write_atomic_with};
 pub const SESSION_SCHEMA_VERSION: u32 = 1;
 /// The header of `frames.csv`.
 pub const FRAMES_CSV_HEADER: &str = "t,file";
+/// The descriptor file whose presence makes a lens folder a video stream.
+pub const VIDEO_JSON: &str = "video.json";
+/// The `video.json` schema version this build reads.
+pub const VIDEO_SCHEMA_VERSION: u32 = 1;
+/// Separates the video file from the frame index in a video stream's `frames.csv` (`video.mkv#12`).
+pub const VIDEO_FRAME_SEPARATOR: char = '#';
 
 /// Which wrist a camera is on.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize)]
@@ -294,6 +301,76 @@ pub struct CameraMeta {
     /// Where the recording came from (original file names, or `kiwi-sim`).
     #[serde(default)]
     pub source: String,
+    /// What ingest read from the camera's files (absent for simulated recordings).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub recording: Option<RecordingInfo>,
+}
+
+/// What `kiwi ingest` read from a camera's own files, kept in `meta.json` for the record and
+/// for the checks later stages make (the lens scale against a calibration's resolution).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RecordingInfo {
+    /// How the files were read (`insta360` trailer, or `generic` video + IMU CSV).
+    pub reader: String,
+    /// The source files, in the order they were joined.
+    pub files: Vec<String>,
+    /// Camera firmware as the file states it (empty when it does not).
+    #[serde(default)]
+    pub firmware: String,
+    /// Camera serial number as the file states it (empty when it does not).
+    #[serde(default)]
+    pub serial: String,
+    /// Recording mode as the camera names it (empty when the file does not say).
+    #[serde(default)]
+    pub camera_mode: String,
+    /// Frame rate measured from the container's frame times (Hz).
+    pub measured_fps: f64,
+    /// Per lens: source track, native and processing resolution, scale.
+    pub lenses: Vec<LensRecording>,
+    /// Where `imu.csv` came from and how it was converted.
+    pub imu: ImuRecording,
+    /// The camera's own lens calibration strings by name (e.g. `offset_v3`), verbatim.
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub lens_calibration_strings: BTreeMap<String, String>,
+    /// Frame readout time the camera states (s), if any.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub readout_time_s: Option<f64>,
+}
+
+/// One lens stream as ingested.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LensRecording {
+    /// Lens folder name (`front`, `rear`, `main`).
+    pub name: String,
+    /// Source file and video track it came from (`VID_x_00_001.insv#v0`).
+    pub source: String,
+    /// Native image size in the file `[w, h]` (px).
+    pub native_resolution: [u32; 2],
+    /// Image size of the prepared stream `[w, h]` (px).
+    pub resolution: [u32; 2],
+    /// `resolution / native_resolution` (the same in both axes): a lens calibration made at
+    /// another resolution is rejected unless scaled explicitly.
+    pub scale: f64,
+}
+
+/// How `imu.csv` was made.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ImuRecording {
+    /// Source (`insta360 trailer record 3`, or the CSV file).
+    pub source: String,
+    /// The axis map applied: KIWI IMU axes x, y, z as signed device axes (`-y,-z,+x`).
+    pub axis_map: String,
+    /// Device units converted at ingest (`g, deg/s, us`).
+    pub device_units: String,
+    /// Samples written.
+    pub samples: usize,
+    /// Mean sample rate (Hz).
+    pub rate_hz: f64,
+    /// Shift applied to the device time stamps to put them on the video clock (s).
+    pub time_offset_s: f64,
 }
 
 /// One row of `frames.csv`.
@@ -303,6 +380,155 @@ pub struct FrameRecord {
     pub t: f64,
     /// Image file, relative to the lens folder.
     pub file: String,
+}
+
+/// `video.json`: the descriptor of a video-backed lens stream. A lens folder that holds it is a
+/// video stream, and its `frames.csv` rows name frames of the video (`video.mkv#<index>`, in
+/// order from 0); a folder without it is an image stream.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct VideoStream {
+    /// Always [`VIDEO_SCHEMA_VERSION`].
+    pub schema_version: u32,
+    /// The video file, relative to the lens folder.
+    pub file: String,
+    /// Frames in the video (= rows of `frames.csv`).
+    pub frames: usize,
+    /// Image width (px).
+    pub width: u32,
+    /// Image height (px).
+    pub height: u32,
+    /// Codec as ffmpeg names it (`utvideo`, `ffv1`, `h264`).
+    pub codec: String,
+    /// Whether decoding gives back the encoded pixels exactly.
+    pub lossless: bool,
+    /// Frames between random-access points (1: every frame is one).
+    pub keyframe_interval: u32,
+    /// The encoder settings, for the record.
+    #[serde(default)]
+    pub encoder: String,
+}
+
+impl VideoStream {
+    /// Read and validate a lens folder's `video.json`.
+    pub fn load(path: &Path) -> Result<Self> {
+        let text = read_text(path)?;
+        let v: Self =
+            serde_path_to_error::deserialize(&mut serde_json::Deserializer::from_str(&text))
+                .map_err(|e| CoreError::Parse {
+                    path: path.to_path_buf(),
+                    format: "JSON",
+                    field: e.path().to_string(),
+                    message: e.inner().to_string(),
+                    fix: "see docs/conventions.md for video.json".into(),
+                })?;
+        v.validate().map_err(|e| e.at_path(path))?;
+        Ok(v)
+    }
+
+    /// Validate and write atomically.
+    pub fn save(&self, path: &Path) -> Result<()> {
+        self.validate().map_err(|e| e.at_path(path))?;
+        let text = serde_json::to_string_pretty(self).map_err(|e| {
+            CoreError::invalid_value("video", "serializable values", e.to_string(), "fix it")
+        })?;
+        write_atomic(path, text.as_bytes())
+    }
+
+    fn validate(&self) -> Result<()> {
+        if self.schema_version != VIDEO_SCHEMA_VERSION {
+            return Err(CoreError::invalid_value(
+                "schema_version",
+                VIDEO_SCHEMA_VERSION.to_string(),
+                self.schema_version.to_string(),
+                "re-write the stream with this version of KIWI",
+            ));
+        }
+        let plain_name = !self.file.is_empty()
+            && !self.file.contains(['/', '\\', VIDEO_FRAME_SEPARATOR])
+            && !self.file.starts_with('.');
+        if !plain_name {
+            return Err(CoreError::invalid_value(
+                "file",
+                "a file name inside the lens folder, without '#'",
+                format!("`{}`", self.file),
+                "rename the video",
+            ));
+        }
+        if self.width == 0 || self.height == 0 || self.frames == 0 || self.keyframe_interval == 0 {
+            return Err(CoreError::invalid_value(
+                "width, height, frames, keyframe_interval",
+                "positive values",
+                format!(
+                    "{}x{}, {} frames, keyframe interval {}",
+                    self.width, self.height, self.frames, self.keyframe_interval
+                ),
+                "re-write the stream",
+            ));
+        }
+        Ok(())
+    }
+
+    /// The `frames.csv` file name of frame `index`.
+    pub fn frame_ref(&self, index: usize) -> String {
+        format!("{}{VIDEO_FRAME_SEPARATOR}{index}", self.file)
+    }
+
+    /// Check that `frames.csv` rows name this video's frames 0, 1, … in order, one per frame.
+    pub fn check_frames(&self, frames_csv: &Path, frames: &[FrameRecord]) -> Result<()> {
+        if frames.len() != self.frames {
+            return Err(CoreError::Invalid {
+                path: frames_csv.to_path_buf(),
+                field: "rows".into(),
+                expected: format!("{} rows, one per frame of {}", self.frames, self.file),
+                found: format!("{} rows", frames.len()),
+                fix: "re-write the stream (frames.csv and video.json disagree)".into(),
+            });
+        }
+        for (i, f) in frames.iter().enumerate() {
+            if f.file != self.frame_ref(i) {
+                return Err(CoreError::Invalid {
+                    path: frames_csv.to_path_buf(),
+                    field: format!("line {}, column file", i + 2),
+                    expected: format!("`{}` (this folder is a video stream)", self.frame_ref(i)),
+                    found: format!("`{}`", f.file),
+                    fix: "a video stream's frames.csv names the video's frames in order; \
+                          re-write the stream"
+                        .into(),
+                });
+            }
+        }
+        Ok(())
+    }
+}
+
+/// How a lens folder stores its frames.
+#[derive(Debug, Clone, PartialEq)]
+pub enum LensStorage {
+    /// One image file per frame (`frames/000000.png`, as `frames.csv` names them).
+    Images,
+    /// One video file and its descriptor (`video.json`).
+    Video(VideoStream),
+}
+
+impl LensStorage {
+    /// Tell a lens folder's kind: a video stream when it holds `video.json`, else images.
+    pub fn of(lens_dir: &Path) -> Result<Self> {
+        let descriptor = lens_dir.join(VIDEO_JSON);
+        if descriptor.is_file() {
+            Ok(Self::Video(VideoStream::load(&descriptor)?))
+        } else {
+            Ok(Self::Images)
+        }
+    }
+
+    /// A short name for messages (`images`, `video (utvideo)`).
+    pub fn describe(&self) -> String {
+        match self {
+            Self::Images => "images".into(),
+            Self::Video(v) => format!("video ({})", v.codec),
+        }
+    }
 }
 
 /// Read and validate `frames.csv` (strictly increasing finite times, non-empty file names).
@@ -431,6 +657,10 @@ impl EpisodeLayout {
     pub fn frames_csv(&self, camera: &str, lens: &str) -> PathBuf {
         self.lens_dir(camera, lens).join("frames.csv")
     }
+    /// A lens's `video.json` (present only in a video stream).
+    pub fn video_json(&self, camera: &str, lens: &str) -> PathBuf {
+        self.lens_dir(camera, lens).join(VIDEO_JSON)
+    }
     /// The image file of a frame record.
     pub fn frame_path(&self, camera: &str, lens: &str, frame: &FrameRecord) -> PathBuf {
         self.lens_dir(camera, lens).join(&frame.file)
@@ -477,7 +707,8 @@ impl EpisodeLayout {
     }
 
     /// Check that a camera's files are complete and consistent: `meta.json`, `imu.csv`,
-    /// `audio.wav`, and per lens a valid `frames.csv` whose first and last images exist.
+    /// `audio.wav`, and per lens a valid `frames.csv` whose first and last images exist (an
+    /// image stream) or whose rows match `video.json` and its video file (a video stream).
     /// Returns the number of frames per lens.
     pub fn validate_camera(&self, camera: &str) -> Result<Vec<(String, usize)>> {
         let meta = self.read_meta(camera)?;
@@ -491,7 +722,20 @@ impl EpisodeLayout {
         }
         let mut counts = Vec::new();
         for lens in &meta.lenses {
-            let frames = read_frames_csv(&self.frames_csv(camera, lens))?;
+            let csv = self.frames_csv(camera, lens);
+            let frames = read_frames_csv(&csv)?;
+            if let LensStorage::Video(video) = LensStorage::of(&self.lens_dir(camera, lens))? {
+                video.check_frames(&csv, &frames)?;
+                let file = self.lens_dir(camera, lens).join(&video.file);
+                if !file.is_file() {
+                    return Err(CoreError::Missing {
+                        path: file,
+                        fix: "video.json names a video that is not there; re-run ingest".into(),
+                    });
+                }
+                counts.push((lens.clone(), frames.len()));
+                continue;
+            }
             for fr in [frames.first(), frames.last()].into_iter().flatten() {
                 let p = self.frame_path(camera, lens, fr);
                 if !p.is_file() {
@@ -504,5 +748,62 @@ impl EpisodeLayout {
             counts.push((lens.clone(), frames.len()));
         }
         Ok(counts)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+
+    fn video() -> VideoStream {
+        VideoStream {
+            schema_version: VIDEO_SCHEMA_VERSION,
+            file: "video.mkv".into(),
+            frames: 3,
+            width: 320,
+            height: 320,
+            codec: "utvideo".into(),
+            lossless: true,
+            keyframe_interval: 1,
+            encoder: String::new(),
+        }
+    }
+
+    #[test]
+    fn a_folder_with_video_json_is_a_video_stream_and_its_rows_must_name_its_frames() {
+        let dir = tempfile::tempdir().unwrap();
+        assert_eq!(LensStorage::of(dir.path()).unwrap(), LensStorage::Images);
+        let v = video();
+        v.save(&dir.path().join(VIDEO_JSON)).unwrap();
+        assert_eq!(
+            LensStorage::of(dir.path()).unwrap(),
+            LensStorage::Video(v.clone())
+        );
+        let rows: Vec<FrameRecord> = (0..3)
+            .map(|i| FrameRecord {
+                t: i as f64 / 30.0,
+                file: v.frame_ref(i),
+            })
+            .collect();
+        let csv = dir.path().join("frames.csv");
+        v.check_frames(&csv, &rows).unwrap();
+        let mut png = rows.clone();
+        png[1].file = "frames/000001.png".into();
+        let e = v.check_frames(&csv, &png).unwrap_err().to_string();
+        assert!(e.contains("line 3") && e.contains("video.mkv#1"), "{e}");
+        let e = v.check_frames(&csv, &rows[..2]).unwrap_err().to_string();
+        assert!(e.contains("3 rows"), "{e}");
+    }
+
+    #[test]
+    fn a_video_descriptor_with_a_path_or_no_frames_is_rejected() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut v = video();
+        v.file = "../x.mkv".into();
+        assert!(v.save(&dir.path().join(VIDEO_JSON)).is_err());
+        let mut v = video();
+        v.frames = 0;
+        assert!(v.save(&dir.path().join(VIDEO_JSON)).is_err());
     }
 }

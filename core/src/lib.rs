@@ -5,14 +5,16 @@
 //! - [`camera`]: fisheye camera models (KB4, Double Sphere) on unit bearing vectors.
 //! - [`imu`]: IMU samples, validated series and the `imu.csv` format.
 //! - [`artifact`]: the unit calibration set, with [`kalibr`] and [`basalt`] exports.
-//! - [`layout`]: `session.toml` and the prepared-episode folder layout.
+//! - [`layout`]: `session.toml` and the prepared-episode folder layout; [`video`] writes a
+//!   video-backed lens stream (through the `ffmpeg` program).
 //! - [`io`]: atomic writes, never-overwritten dated folders, hashes.
 //! - [`tool`]: tool definitions; [`hardware`]: the hardware parameter file and what is
 //!   generated from it (the OpenSCAD parameters, the tool definitions).
 //! - [`audio`]: WAV decoding and resampling; [`fit`]: the robust line fit; [`rig`]: the QR-clock
 //!   rig's contract.
 //!
-//! This crate has no OpenCV, no image decoding and no command-line code, so it builds in
+//! This crate has no OpenCV, no image decoding (video streams are decoded in the backend) and
+//! no command-line code, so it builds in
 //! seconds and everything else can depend on it. Conventions: `docs/conventions.md`.
 
 pub mod artifact;
@@ -29,5 +31,6 @@ pub mod kalibr;
 pub mod layout;
 pub mod rig;
 pub mod tool;
+pub mod video;
 
 pub use error::{CoreError, Result};

@@ -377,8 +377,9 @@ pub struct ToolCalibrationQuality {
     /// Jaw lines (one per jaw and frame) the hinge and jaw direction were refined from; 0
     /// when they come from the tag and the definition's offsets alone.
     pub jaw_lines: usize,
-    /// RMS distance of the dots from their jaw lines (m).
-    pub dot_line_rms_m: f64,
+    /// RMS distance of the dots from their jaw lines (m); none when no jaw line was fitted
+    /// (`jaw_lines` 0).
+    pub dot_line_rms_m: Option<f64>,
     /// Angle between the calibrated and the definition's plane normal (deg).
     pub plane_tilt_from_definition_deg: f64,
     /// Angle between the calibrated and the definition's jaw direction (deg).

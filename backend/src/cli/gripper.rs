@@ -231,7 +231,7 @@ fn calibrate(
         let q = &tc.quality;
         println!(
             "tool {} on unit {} lens {}: body tag in {} of {} frames (corner RMS {:.2} px, \
-             normal scatter {:.2} deg), hinge from {} jaw lines (dot RMS {:.2} mm); plane tilted \
+             normal scatter {:.2} deg), hinge from {} jaw lines (dot RMS {} mm); plane tilted \
              {:.2} deg, jaws turned {:.2} deg, hinge moved {:.2} mm from the definition; wrote {}",
             def.name,
             tc.unit_id,
@@ -241,7 +241,8 @@ fn calibrate(
             q.tag_rms_px,
             q.tag_normal_spread_deg,
             q.jaw_lines,
-            q.dot_line_rms_m * 1e3,
+            q.dot_line_rms_m
+                .map_or_else(|| "-".to_string(), |v| format!("{:.2}", v * 1e3)),
             q.plane_tilt_from_definition_deg,
             q.jaw_direction_from_definition_deg,
             q.hinge_shift_from_definition_m * 1e3,

@@ -5,6 +5,7 @@ use clap::{Parser, Subcommand};
 
 mod fuse;
 mod gripper;
+mod ingest;
 mod inspect;
 mod metric;
 mod run;
@@ -68,6 +69,11 @@ enum Command {
     Gripper(gripper::GripperArgs),
     /// Check a session: session.toml, unit calibrations and every prepared episode's files.
     Inspect(inspect::InspectArgs),
+    /// Turn cameras' own files into a prepared episode of a session: Insta360 X5/X4 .insv and
+    /// GO 3 recordings (IMU, exposure and lens data from the file's metadata trailer), or any
+    /// video plus an IMU CSV. Lenses are resized to the processing resolution and stored as a
+    /// video (or PNGs); frame times come from the container, audio.wav starts at video time 0.
+    Ingest(ingest::IngestArgs),
 }
 
 /// Split `NAME=VALUE`.
@@ -102,6 +108,7 @@ fn main() -> Result<()> {
         Command::Localize(args) => vision::run_localize(&args)?,
         Command::Gripper(args) => gripper::run_gripper(&args)?,
         Command::Inspect(args) => inspect::run_inspect_cmd(args)?,
+        Command::Ingest(args) => ingest::run_ingest_cmd(&args)?,
     }
     Ok(())
 }

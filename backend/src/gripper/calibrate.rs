@@ -32,8 +32,8 @@ use rayon::prelude::*;
 
 use super::aruco::{TagDetector, TagView, project_bearing};
 use super::estimate::{GripperEstimator, ImageView, JawDots, JawLine, fit_line};
-use super::load_bgr;
 use crate::error::{BackendError, Result};
+use crate::frames::FrameSource;
 
 /// The virtual tag view covers this many tag half-diagonals around the nominal tag centre:
 /// room for a tool mounted several millimetres and degrees off its CAD pose.
@@ -214,10 +214,10 @@ fn reprojection_rms(
 }
 
 /// Frames spread evenly over the recording, at most `max`.
-fn spread(frames: &[FrameRecord], max: usize) -> Vec<&FrameRecord> {
-    let n = frames.len();
+/// Indices of at most `max` frames spread evenly over `n`.
+fn spread(n: usize, max: usize) -> Vec<usize> {
     let m = max.max(1).min(n);
-    (0..m).map(|k| &frames[k * n / m]).collect()
+    (0..m).map(|k| k * n / m).collect()
 }
 
 /// A definition whose plane, jaw direction and hinge come from a body frame.
@@ -623,7 +623,7 @@ fn dots_of(est: &GripperEstimator, loaded: &[(Option<Corners>, Option<Frame>)]) 
         .collect()
 }
 
-/// Calibrate a tool on one lens from a folder of its frames (`frames.csv` + images).
+/// Calibrate a tool on one lens from a folder of its frames (`frames.csv` + images or video).
 pub fn calibrate_tool(
     camera: &Camera,
     def: &ToolDefinition,
@@ -664,30 +664,35 @@ pub fn calibrate_tool(
     };
     let view = TagView::new(camera, &centre, half_angle, density * VIEW_UPSAMPLE)?;
     let detector = TagDetector::new(&def.marker.dictionary, def.marker.id)?;
-    let chosen = spread(frames, options.max_frames);
+    let source = FrameSource::open(lens_dir)?;
+    if source.len() != frames.len() {
+        return Err(input(format!(
+            "{} frames given, the lens folder holds {}; pass the folder's own frames.csv rows",
+            frames.len(),
+            source.len()
+        )));
+    }
+    let chosen = spread(frames.len(), options.max_frames);
     // Load each chosen frame once: tag corners and the pixels for the dot passes.
-    let loaded: Vec<(Option<Corners>, Option<Frame>)> = chosen
-        .par_iter()
-        .map(|f| {
-            let img = load_bgr(&lens_dir.join(&f.file)).ok();
-            let tag = img.as_ref().and_then(|(w, h, data)| {
-                detector
-                    .detect(
-                        &view,
-                        &ImageView {
-                            width: *w,
-                            height: *h,
-                            data,
-                            order: super::ChannelOrder::Bgr,
-                        },
-                    )
-                    .ok()
-                    .flatten()
-            });
-            progress();
-            (tag, img)
-        })
-        .collect();
+    let loaded: Vec<(Option<Corners>, Option<Frame>)> = source.map_color(&chosen, |_, img| {
+        let img = img.ok().map(|c| (c.width, c.height, c.bgr));
+        let tag = img.as_ref().and_then(|(w, h, data)| {
+            detector
+                .detect(
+                    &view,
+                    &ImageView {
+                        width: *w,
+                        height: *h,
+                        data,
+                        order: super::ChannelOrder::Bgr,
+                    },
+                )
+                .ok()
+                .flatten()
+        });
+        progress();
+        (tag, img)
+    });
     // Per-frame fits screen misdetections and give the scatter.
     let mut good: Vec<[Vector3<f64>; 4]> = Vec::new();
     let mut per_frame: Vec<Isometry3<f64>> = Vec::new();
@@ -735,7 +740,7 @@ pub fn calibrate_tool(
     let mut hinge =
         tag.translation.vector + n * def.marker.face_offset_m + d0 * def.marker.behind_hinge_m;
     let tag_hinge = hinge;
-    let (mut jaw_lines, mut dot_rms) = (0usize, f64::NAN);
+    let (mut jaw_lines, mut dot_rms) = (0usize, None);
     for _ in 0..HINGE_PASSES {
         let current = with_body(def, hinge, d0, n);
         let est = GripperEstimator::new(camera, &current)?;
@@ -754,7 +759,7 @@ pub fn calibrate_tool(
             Rotation3::from_axis_angle(&nalgebra::Unit::new_normalize(e_u.cross(&e_v)), s.rotation)
                 * d0;
         jaw_lines = s.lines;
-        dot_rms = s.rms;
+        dot_rms = Some(s.rms);
     }
     // The plane itself from the dots' known spacing over all frames.
     let mut n = n;
@@ -778,7 +783,7 @@ pub fn calibrate_tool(
         }
         (hinge, d0, n) = (h, d, nn);
         jaw_lines = jaws.len();
-        dot_rms = fit.rms_m;
+        dot_rms = Some(fit.rms_m);
     }
     let calibrated = with_body(def, hinge, d0, n);
     let body = calibrated.front_from_body();

@@ -16,15 +16,13 @@ use std::path::{Path, PathBuf};
 
 use kiwi_core::camera::Camera;
 use kiwi_core::io::write_atomic;
-use kiwi_core::layout::{FrameRecord, read_frames_csv};
 use kiwi_core::tool::{ToolCalibration, ToolDefinition};
-use opencv::prelude::*;
-use rayon::prelude::*;
 use serde::Serialize;
 
 pub use estimate::{ChannelOrder, GripperEstimator, ImageView, Measurement, OpeningUnit};
 
 use crate::error::{BackendError, Result};
+use crate::frames::FrameSource;
 
 /// One output row.
 #[derive(Debug, Clone, Serialize)]
@@ -67,67 +65,45 @@ pub struct ToolArtifact {
     pub plane: estimate::DotPlane,
 }
 
-/// Read one frame as interleaved BGR bytes.
+/// Read one image file as interleaved BGR bytes `(width, height, bytes)`.
 pub fn load_bgr(path: &Path) -> Result<(usize, usize, Vec<u8>)> {
-    let bad = |message: String| BackendError::Input {
-        path: path.to_path_buf(),
-        message,
-    };
-    let mat = opencv::imgcodecs::imread(path, opencv::imgcodecs::IMREAD_COLOR)
-        .map_err(|e| bad(format!("cannot read the image: {e}")))?;
-    if mat.empty() {
-        return Err(bad(
-            "cannot read the image (missing or not an image); check frames.csv".into(),
-        ));
-    }
-    let (w, h) = (mat.cols() as usize, mat.rows() as usize);
-    let bytes = mat
-        .data_bytes()
-        .map_err(|e| bad(format!("cannot access the pixels: {e}")))?;
-    if bytes.len() != w * h * 3 {
-        return Err(bad(format!(
-            "expected {w}x{h}x3 bytes, found {}",
-            bytes.len()
-        )));
-    }
-    Ok((w, h, bytes.to_vec()))
+    let img = crate::frames::load_image_bgr(path)?;
+    Ok((img.width, img.height, img.bgr))
 }
 
-/// Measure every frame of a lens folder (`frames.csv` + images) in parallel; `progress` is
-/// called once per frame from worker threads.
+/// Measure every frame of a lens folder (`frames.csv` + images or video) in parallel;
+/// `progress` is called once per frame from worker threads.
 pub fn measure_lens(
     estimator: &GripperEstimator,
     lens_dir: &Path,
     progress: &(dyn Fn() + Sync),
 ) -> Result<Vec<OpeningRow>> {
-    let frames: Vec<FrameRecord> = read_frames_csv(&lens_dir.join("frames.csv"))?;
-    frames
-        .par_iter()
-        .map(|f| {
-            let path = lens_dir.join(&f.file);
-            let m = match load_bgr(&path) {
-                Ok((width, height, data)) => estimator.measure(&ImageView {
-                    width,
-                    height,
-                    data: &data,
-                    order: ChannelOrder::Bgr,
-                }),
-                Err(e) => Measurement {
-                    opening: None,
-                    unit: estimator.unit(),
-                    confidence: 0.0,
-                    status: format!("missing: unreadable frame ({e})"),
-                    dots_used: [0, 0],
-                    fit_rms_m: f64::NAN,
-                },
-            };
-            progress();
-            Ok(OpeningRow {
-                t: f.t,
-                measurement: m,
-            })
-        })
-        .collect()
+    let source = FrameSource::open(lens_dir)?;
+    let indices: Vec<usize> = (0..source.len()).collect();
+    let frames = source.frames();
+    Ok(source.map_color(&indices, |i, img| {
+        let m = match img {
+            Ok(img) => estimator.measure(&ImageView {
+                width: img.width,
+                height: img.height,
+                data: &img.bgr,
+                order: ChannelOrder::Bgr,
+            }),
+            Err(e) => Measurement {
+                opening: None,
+                unit: estimator.unit(),
+                confidence: 0.0,
+                status: format!("missing: unreadable frame ({e})"),
+                dots_used: [0, 0],
+                fit_rms_m: f64::NAN,
+            },
+        };
+        progress();
+        OpeningRow {
+            t: frames[i].t,
+            measurement: m,
+        }
+    }))
 }
 
 /// `t,opening,unit,confidence,status` text (the status never contains a comma).

@@ -117,9 +117,10 @@ fn file_input(ctx: &SessionContext, name: String, path: &Path) -> Result<InputDi
     })
 }
 
-/// Digest of a lens stream: its `frames.csv` and every frame file's name and size (the images
-/// are not read: hashing hundreds of gigabytes of frames per check would cost more than the
-/// check saves; a frame replaced by one of the same size is not noticed).
+/// Digest of a lens stream. An image stream: its `frames.csv` and every frame file's name and
+/// size (the images are not read: hashing hundreds of gigabytes of frames per check would cost
+/// more than the check saves; a frame replaced by one of the same size is not noticed). A video
+/// stream: its `frames.csv`, `video.json` and the video's content (one sequential read).
 pub fn stream_input(
     ctx: &SessionContext,
     layout: &EpisodeLayout,
@@ -143,15 +144,26 @@ pub fn stream_input(
     let frames = kiwi_core::layout::read_frames_csv(&csv)?;
     let mut text = sha256_file(&csv)?;
     text.push('\n');
-    for f in &frames {
-        let path = layout.frame_path(camera, lens, f);
-        let size = std::fs::metadata(&path).map(|m| m.len()).map_err(|e| {
-            input(
-                &path,
-                format!("frame listed in {} cannot be read: {e}", csv.display()),
-            )
-        })?;
-        text.push_str(&format!("{}={size}\n", f.file));
+    match kiwi_core::layout::LensStorage::of(&layout.lens_dir(camera, lens))? {
+        kiwi_core::layout::LensStorage::Video(video) => {
+            video.check_frames(&csv, &frames)?;
+            text.push_str(&sha256_file(&layout.video_json(camera, lens))?);
+            text.push('\n');
+            let file = layout.lens_dir(camera, lens).join(&video.file);
+            text.push_str(&format!("{}={}\n", video.file, sha256_file(&file)?));
+        }
+        kiwi_core::layout::LensStorage::Images => {
+            for f in &frames {
+                let path = layout.frame_path(camera, lens, f);
+                let size = std::fs::metadata(&path).map(|m| m.len()).map_err(|e| {
+                    input(
+                        &path,
+                        format!("frame listed in {} cannot be read: {e}", csv.display()),
+                    )
+                })?;
+                text.push_str(&format!("{}={size}\n", f.file));
+            }
+        }
     }
     Ok(InputDigest {
         name: format!("stream {camera}/{lens}"),

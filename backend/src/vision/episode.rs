@@ -1,6 +1,7 @@
 //! Prepared-episode drivers of `kiwi map` and `kiwi localize`: read a lens stream
-//! (`<episode>/<camera>/<lens>/frames.csv` and its images) with its calibration, build a map
-//! from it, localize it against a frozen map, and write `poses.csv`.
+//! (`<episode>/<camera>/<lens>/`: `frames.csv` and its images or video, through
+//! [`crate::frames::FrameSource`]) with its calibration, build a map from it, localize it
+//! against a frozen map, and write `poses.csv`.
 //!
 //! The calibration comes from `--calibration` or, by default, from the session the episode
 //! belongs to (`<session>/episodes/<episode>`): the unit named in the camera's `meta.json` is
@@ -11,14 +12,14 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use rayon::prelude::*;
 use serde::Serialize;
 
 use kiwi_core::artifact::UnitCalibration;
 use kiwi_core::camera::{Camera, CameraModel};
-use kiwi_core::layout::{EpisodeLayout, FrameRecord, Session, read_frames_csv};
+use kiwi_core::layout::{EpisodeLayout, FrameRecord, Session};
 
 use crate::error::{BackendError, Result};
+use crate::frames::FrameSource;
 use crate::vision::features::{
     FOV_MASK_MARGIN_RAD, GrayImage, Mask, OrbExtractor, OrbOptions, fov_mask, intersect_masks,
 };
@@ -30,9 +31,6 @@ use crate::vision::loop_closure::{LoopOptions, LoopReport, close_loops};
 use crate::vision::map::VisualMap;
 use crate::vision::mapping::{MapperOptions, global_adjustment, reconstruct};
 
-/// Frames decoded ahead (one parallel batch, and the queue to the vision thread): enough to
-/// keep two cores busy, small in memory.
-const DECODE_BATCH: usize = 16;
 /// Angle of one pixel at the centre of the 960 px X5 lens the mapper's defaults are tuned for.
 const REFERENCE_PIXEL_ANGLE_RAD: f64 = 1.0 / 290.0;
 
@@ -48,6 +46,8 @@ pub struct LensStream {
     pub camera: Camera,
     /// `frames.csv`.
     pub frames: Vec<FrameRecord>,
+    /// The frames themselves (images or video).
+    pub source: FrameSource,
     /// Features allowed where non-zero: the lens's field of view, intersected with a static
     /// mask if one was given.
     pub mask: Mask,
@@ -126,10 +126,8 @@ impl LensStream {
                 ),
             ));
         }
-        let frames = read_frames_csv(&frames_csv)?;
-        if frames.is_empty() {
-            return Err(input_err(&frames_csv, "expected frames, found none".into()));
-        }
+        let source = FrameSource::open(&layout.lens_dir(camera_name, lens))?;
+        let frames = source.frames().to_vec();
         let cal_path = match calibration {
             Some(p) => p.to_path_buf(),
             None => session_calibration(&layout, camera_name)?,
@@ -142,6 +140,8 @@ impl LensStream {
             )
         })?;
         let camera = lens_cal.camera()?;
+        let meta = layout.read_meta(camera_name).ok();
+        source.check_calibration_size(&camera, &cal_path, meta.as_ref())?;
         let mut mask = fov_mask(&camera, FOV_MASK_MARGIN_RAD);
         if let Some(m) = static_mask {
             let image = GrayImage::load(m)?;
@@ -153,6 +153,7 @@ impl LensStream {
             lens: lens.into(),
             camera,
             frames,
+            source,
             mask,
         })
     }
@@ -164,57 +165,17 @@ impl LensStream {
             .map_or_else(String::new, |n| n.to_string_lossy().into_owned())
     }
 
-    fn frame_path(&self, i: usize) -> PathBuf {
-        EpisodeLayout::new(&self.episode).frame_path(&self.camera_name, &self.lens, &self.frames[i])
-    }
-
     /// Decode frame `i`.
     pub fn load(&self, i: usize) -> Result<GrayImage> {
-        GrayImage::load(&self.frame_path(i))
+        self.source.load_gray(i)
     }
 
     /// Call `f(index, image)` for every frame in order. Images are decoded ahead on another
-    /// thread (in parallel batches through rayon) while `f` runs, so decoding overlaps the
-    /// vision; `f` still sees every frame in order, so results do not depend on the thread
-    /// count. Stops at the first error (decoding or `f`).
-    pub fn for_each_frame(&self, mut f: impl FnMut(usize, GrayImage) -> Result<()>) -> Result<()> {
-        let n = self.frames.len();
-        // A caller inside a one-thread rayon pool (`--threads 1`) gets one decoding thread.
-        let parallel = rayon::current_num_threads() > 1;
-        let (tx, rx) = std::sync::mpsc::sync_channel::<Result<GrayImage>>(DECODE_BATCH);
-        std::thread::scope(|scope| {
-            scope.spawn(move || {
-                let mut start = 0;
-                while start < n {
-                    let end = (start + DECODE_BATCH).min(n);
-                    let batch: Vec<Result<GrayImage>> = if parallel {
-                        (start..end).into_par_iter().map(|i| self.load(i)).collect()
-                    } else {
-                        (start..end).map(|i| self.load(i)).collect()
-                    };
-                    for img in batch {
-                        let failed = img.is_err();
-                        // The receiver hangs up after an error of `f`: stop decoding.
-                        if tx.send(img).is_err() || failed {
-                            return;
-                        }
-                    }
-                    start = end;
-                }
-            });
-            // Owned here, so that an early return drops the receiver before the scope joins:
-            // the decoder's next `send` then fails and it stops instead of blocking forever
-            // on a full channel.
-            let rx = rx;
-            for i in 0..n {
-                let img = rx.recv().map_err(|_| BackendError::Vision {
-                    context: "image decoding".into(),
-                    message: format!("the decoding thread stopped before frame {i}"),
-                })??;
-                f(i, img)?;
-            }
-            Ok(())
-        })
+    /// thread while `f` runs ([`FrameSource::for_each_gray`]), so decoding overlaps the vision;
+    /// `f` still sees every frame in order, so results do not depend on the thread count. Stops
+    /// at the first error (decoding or `f`).
+    pub fn for_each_frame(&self, f: impl FnMut(usize, GrayImage) -> Result<()>) -> Result<()> {
+        self.source.for_each_gray(f)
     }
 }
 
