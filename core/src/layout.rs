@@ -121,19 +121,33 @@ pub struct Session {
     pub episodes: Vec<EpisodeConfig>,
 }
 
+/// Parse `session.toml` text; an error names the field (`wrists.left.tool`) and its line.
+pub fn parse_session(text: &str, path: &Path) -> Result<Session> {
+    let line_of = |e: &toml::de::Error| {
+        e.span()
+            .map(|s| text[..s.start.min(text.len())].matches('\n').count() + 1)
+    };
+    let parse_error = |field: String, e: &toml::de::Error| CoreError::Parse {
+        path: path.to_path_buf(),
+        format: "TOML",
+        field: match line_of(e) {
+            Some(line) if field.is_empty() || field == "." => format!("line {line}"),
+            Some(line) => format!("{field} (line {line})"),
+            None => field,
+        },
+        message: e.message().trim().to_string(),
+        fix: "see docs/conventions.md for the session.toml fields".into(),
+    };
+    let de = toml::Deserializer::parse(text).map_err(|e| parse_error(".".into(), &e))?;
+    serde_path_to_error::deserialize(de)
+        .map_err(|e| parse_error(e.path().to_string(), e.inner()))
+}
+
 impl Session {
     /// Parse and validate a `session.toml`.
     pub fn load(path: &Path) -> Result<Self> {
         let text = read_text(path)?;
-        let session: Self = toml::from_str(&text).map_err(|e| CoreError::Parse {
-            path: path.to_path_buf(),
-            format: "TOML",
-            field: e
-                .span()
-                .map_or_else(|| ".".into(), |s| format!("byte {}", s.start)),
-            message: e.message().to_string(),
-            fix: "see docs/conventions.md for the session.toml fields".into(),
-        })?;
+        let session = parse_session(&text, path)?;
         session.validate().map_err(|e| e.at_path(path))?;
         Ok(session)
     }
@@ -307,10 +321,19 @@ pub struct FrameRecord {
 
 /// Read and validate `frames.csv` (strictly increasing finite times, non-empty file names).
 pub fn read_frames_csv(path: &Path) -> Result<Vec<FrameRecord>> {
+    let file = std::fs::File::open(path).map_err(|source| CoreError::Io {
+        action: "opening",
+        path: path.to_path_buf(),
+        source,
+    })?;
+    parse_frames_csv(std::io::BufReader::new(file), path)
+}
+
+/// [`read_frames_csv`] on content from any reader; `path` names it in errors.
+pub fn parse_frames_csv<R: std::io::Read>(reader: R, path: &Path) -> Result<Vec<FrameRecord>> {
     let mut reader = csv::ReaderBuilder::new()
         .has_headers(true)
-        .from_path(path)
-        .map_err(|e| csv_error(path, &e))?;
+        .from_reader(reader);
     let headers = reader.headers().map_err(|e| csv_error(path, &e))?.clone();
     if headers.get(0) != Some("t") || headers.get(1) != Some("file") {
         return Err(CoreError::Invalid {
@@ -380,6 +403,13 @@ pub fn write_frames_csv(path: &Path, frames: &[FrameRecord]) -> Result<()> {
 }
 
 fn csv_error(path: &Path, e: &csv::Error) -> CoreError {
+    if let csv::ErrorKind::Io(io) = e.kind() {
+        return CoreError::Io {
+            action: "reading",
+            path: path.to_path_buf(),
+            source: std::io::Error::new(io.kind(), io.to_string()),
+        };
+    }
     let field = e
         .position()
         .map_or_else(|| ".".into(), |p| format!("line {}", p.line()));
@@ -477,7 +507,8 @@ impl EpisodeLayout {
     }
 
     /// Check that a camera's files are complete and consistent: `meta.json`, `imu.csv`,
-    /// `audio.wav`, and per lens a valid `frames.csv` whose first and last images exist.
+    /// `audio.wav`, and per lens a valid `frames.csv` whose every image exists (their content
+    /// is checked by `kiwi inspect`).
     /// Returns the number of frames per lens.
     pub fn validate_camera(&self, camera: &str) -> Result<Vec<(String, usize)>> {
         let meta = self.read_meta(camera)?;
@@ -492,7 +523,7 @@ impl EpisodeLayout {
         let mut counts = Vec::new();
         for lens in &meta.lenses {
             let frames = read_frames_csv(&self.frames_csv(camera, lens))?;
-            for fr in [frames.first(), frames.last()].into_iter().flatten() {
+            for fr in &frames {
                 let p = self.frame_path(camera, lens, fr);
                 if !p.is_file() {
                     return Err(CoreError::Missing {

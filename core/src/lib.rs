@@ -7,12 +7,14 @@
 //! - [`artifact`]: the unit calibration set, with [`kalibr`] and [`basalt`] exports.
 //! - [`layout`]: `session.toml` and the prepared-episode folder layout.
 //! - [`io`]: atomic writes, never-overwritten dated folders, hashes.
+//! - [`args`]: checks of numbers given on command lines.
 //! - [`audio`]: WAV decoding and resampling; [`fit`]: the robust line fit; [`rig`]: the QR-clock
 //!   rig's contract.
 //!
 //! This crate has no OpenCV, no image decoding and no command-line code, so it builds in
 //! seconds and everything else can depend on it. Conventions: `docs/conventions.md`.
 
+pub mod args;
 pub mod artifact;
 pub mod audio;
 pub mod basalt;

@@ -168,9 +168,22 @@ impl LensStream {
         EpisodeLayout::new(&self.episode).frame_path(&self.camera_name, &self.lens, &self.frames[i])
     }
 
-    /// Decode frame `i`.
+    /// Decode frame `i`, checking it has the calibrated lens's size.
     pub fn load(&self, i: usize) -> Result<GrayImage> {
-        GrayImage::load(&self.frame_path(i))
+        let path = self.frame_path(i);
+        let image = GrayImage::load(&path)?;
+        let (w, h) = self.camera.resolution();
+        if (image.width, image.height) != (w, h) {
+            return Err(input_err(
+                &path,
+                format!(
+                    "frame {i} (t = {} s) is {}×{}, but the lens is calibrated at {w}×{h}; was \
+                     the frame resized, or is the calibration for another recording mode?",
+                    self.frames[i].t, image.width, image.height
+                ),
+            ));
+        }
+        Ok(image)
     }
 
     /// Call `f(index, image)` for every frame in order. Images are decoded ahead on another
@@ -496,4 +509,115 @@ pub fn write_poses_csv(path: &Path, results: &[FrameLocalization]) -> Result<()>
     }
     kiwi_core::io::write_atomic(path, text.as_bytes())?;
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
+
+    use super::*;
+    use std::sync::mpsc;
+    use std::time::Duration;
+
+    /// A stream that hangs fails the test after this long instead of blocking the test run.
+    const HANG_TIMEOUT: Duration = Duration::from_secs(30);
+
+    /// A lens stream of `n` 32×32 frames on disk; frame `bad` (if any) has the wrong size.
+    fn stream(dir: &Path, n: usize, bad: Option<usize>) -> LensStream {
+        let lens_dir = dir.join("left").join("front");
+        std::fs::create_dir_all(lens_dir.join("frames")).unwrap();
+        let mut frames = Vec::new();
+        for i in 0..n {
+            let file = EpisodeLayout::frame_file_name(i);
+            let size = if Some(i) == bad { 48 } else { 32 };
+            image::GrayImage::from_pixel(size, size, image::Luma([i as u8]))
+                .save(lens_dir.join(&file))
+                .unwrap();
+            frames.push(FrameRecord {
+                t: i as f64 * 0.01,
+                file,
+            });
+        }
+        let camera = Camera::Kb4(
+            kiwi_core::camera::Kb4::new(32, 32, [10.0, 10.0, 15.5, 15.5, 0.0, 0.0, 0.0, 0.0])
+                .unwrap(),
+        );
+        let mask = fov_mask(&camera, FOV_MASK_MARGIN_RAD);
+        LensStream {
+            episode: dir.to_path_buf(),
+            camera_name: "left".into(),
+            lens: "front".into(),
+            camera,
+            frames,
+            mask,
+        }
+    }
+
+    /// Run `f` on another thread; fail if it does not return within [`HANG_TIMEOUT`].
+    fn within_timeout<T: Send + 'static>(f: impl FnOnce() -> T + Send + 'static) -> T {
+        let (tx, rx) = mpsc::channel();
+        std::thread::spawn(move || {
+            let _ = tx.send(f());
+        });
+        rx.recv_timeout(HANG_TIMEOUT)
+            .expect("the frame stream hung: a thread waits on one that failed")
+    }
+
+    #[test]
+    fn consumer_failing_mid_stream_stops_the_decoder() {
+        // Many more frames than the channel holds, so the decoder is blocked on a full channel
+        // when the consumer fails.
+        let dir = tempfile::tempdir().unwrap();
+        let s = stream(dir.path(), 6 * DECODE_BATCH, None);
+        let (seen, result) = within_timeout(move || {
+            let mut seen = 0;
+            let r = s.for_each_frame(|i, _| {
+                seen += 1;
+                if i == 3 {
+                    Err(BackendError::Vision {
+                        context: "test".into(),
+                        message: "consumer failed".into(),
+                    })
+                } else {
+                    Ok(())
+                }
+            });
+            (seen, r)
+        });
+        assert_eq!(seen, 4);
+        assert!(result.unwrap_err().to_string().contains("consumer failed"));
+    }
+
+    #[test]
+    fn producer_failing_mid_stream_reports_the_frame() {
+        let dir = tempfile::tempdir().unwrap();
+        let bad = 2 * DECODE_BATCH + 3;
+        let s = stream(dir.path(), 6 * DECODE_BATCH, Some(bad));
+        let (seen, result) = within_timeout(move || {
+            let mut seen = 0;
+            let r = s.for_each_frame(|_, _| {
+                seen += 1;
+                Ok(())
+            });
+            (seen, r)
+        });
+        assert_eq!(seen, bad, "every frame before the bad one reaches the consumer");
+        let e = result.unwrap_err().to_string();
+        assert!(e.contains("000035.png") && e.contains("48×48") && e.contains("32×32"), "{e}");
+    }
+
+    #[test]
+    fn missing_frame_mid_stream_and_slow_consumer_do_not_hang() {
+        let dir = tempfile::tempdir().unwrap();
+        let s = stream(dir.path(), 4 * DECODE_BATCH, None);
+        std::fs::remove_file(s.frame_path(DECODE_BATCH + 1)).unwrap();
+        let result = within_timeout(move || {
+            s.for_each_frame(|_, _| {
+                std::thread::sleep(Duration::from_millis(1));
+                Ok(())
+            })
+        });
+        let e = result.unwrap_err().to_string();
+        assert!(e.contains("000017.png"), "{e}");
+    }
 }
