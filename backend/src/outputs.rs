@@ -38,6 +38,10 @@ use crate::quality::{
 };
 use crate::sync::{CameraStatus, SyncResult};
 
+/// Frame times of `opening.csv` are written to the microsecond; a frame and an opening row
+/// closer than this are the same frame.
+const OPENING_TIME_MATCH_S: f64 = 2e-6;
+
 /// Schema of `quality.json`.
 pub const QUALITY_SCHEMA_VERSION: u32 = 1;
 /// Header of `<wrist>.csv`.
@@ -144,6 +148,8 @@ pub struct WristInputs {
     pub observations: ObservationCounts,
     /// Fusion statistics.
     pub fusion: FusionStatistics,
+    /// Front frames outside the IMU log (not fused, not in the outputs).
+    pub frames_outside_imu: usize,
     /// The wrist's front-map placement.
     pub placement: PlacementFile,
     /// Whether the tool was calibrated from its body tag (else CAD geometry).
@@ -194,6 +200,8 @@ pub struct WristQuality {
     pub observations: ObservationCounts,
     /// Fusion solver and residuals.
     pub fusion: FusionStatistics,
+    /// Front frames outside the IMU log: not fused and not in the outputs.
+    pub frames_outside_imu: usize,
     /// Placement of the front map: pairs, inliers, RMS.
     pub placement: PlacementFile,
     /// The clock on the session timeline.
@@ -276,12 +284,15 @@ fn write_wrist(
     let tip_from_imu = w.cam_from_tip.inverse() * w.front_cam_from_imu;
     let mut classes = Vec::with_capacity(n);
     let mut sigmas = Vec::with_capacity(n);
-    let openings: BTreeMap<u64, &Opening> = w
-        .opening
-        .iter()
-        .flat_map(|o| o.rows.iter())
-        .map(|o| (o.t.to_bits(), o))
-        .collect();
+    let openings: Vec<&Opening> = w.opening.iter().flat_map(|o| o.rows.iter()).collect();
+    // `opening.csv` keeps microseconds: match a frame to the opening row within that.
+    let opening_at = |t: f64| -> Option<&Opening> {
+        let k = openings.partition_point(|o| o.t < t - OPENING_TIME_MATCH_S);
+        openings
+            .get(k)
+            .copied()
+            .filter(|o| (o.t - t).abs() <= OPENING_TIME_MATCH_S)
+    };
     let mut measured = 0usize;
     for row in &w.fused {
         let (cam_pose, cam_sp, cam_sr) = row.node.camera_pose(&w.front_cam_from_imu);
@@ -307,11 +318,10 @@ fn write_wrist(
             class.as_str(),
             row.node.support.label()
         );
-        let opening = w.opening.as_ref().and_then(|series| {
-            openings
-                .get(&row.t_camera.to_bits())
-                .map(|o| (series.unit, o))
-        });
+        let opening = w
+            .opening
+            .as_ref()
+            .and_then(|series| opening_at(row.t_camera).map(|o| (series.unit, o)));
         match opening {
             Some((unit, o)) => {
                 let value = o.value.map(|v| format!("{v:.6}")).unwrap_or_default();
@@ -359,6 +369,7 @@ fn write_wrist(
         rear_localization: w.rear.clone(),
         observations: w.observations,
         fusion: w.fusion,
+        frames_outside_imu: w.frames_outside_imu,
         placement: w.placement.clone(),
         clock: clock.cloned(),
         gripper_measured_fraction: w

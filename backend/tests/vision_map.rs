@@ -1,6 +1,7 @@
 //! The visual map file: exact round trip, validation errors that name the field, and refusal to
 //! localize another lens model, resolution or lens (another calibration of the same model is
-//! served: the rear map is shared by both wrists' units); schema 1 files still load.
+//! served: the rear map is shared by both wrists' units); maps of older schemas (descriptors of
+//! the raw fisheye image) are refused with "rebuild the map".
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
 use kiwi_backend::vision::features::Descriptor;
@@ -110,19 +111,16 @@ fn map_refuses_other_lenses_with_a_clear_error() {
 }
 
 #[test]
-fn schema_1_maps_still_load_and_learn_a_vocabulary() {
+fn maps_without_a_vocabulary_learn_one_and_older_schemas_are_refused() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("old.kmap");
     let mut map = sample_map();
-    map.schema_version = 1;
     map.vocabulary = None;
     // Keyframe 1 sees other things than keyframe 0.
     map.keyframes[1].features[0].descriptor = Descriptor([u64::MAX; 4]);
     map.keyframes[1].features[1].descriptor = Descriptor([u64::MAX, 0, u64::MAX, 0]);
-    std::fs::write(&path, serde_json::to_string(&map).unwrap()).unwrap();
-    let mut back = VisualMap::load(&path).unwrap();
-    assert_eq!(back.schema_version, 1);
-    assert!(back.vocabulary.is_none());
+    // A map assembled in memory without a vocabulary learns one for place recognition.
+    let mut back = map.clone();
     let db = back.keyframe_database();
     assert!(back.vocabulary.is_some());
     let query = back.vocabulary.as_ref().unwrap().bow(&[
@@ -132,11 +130,22 @@ fn schema_1_maps_still_load_and_learn_a_vocabulary() {
     let hits = db.query(&query, 5);
     assert_eq!(hits[0].1, 1, "{hits:?}");
     assert!(hits[0].0 > 0.99, "{hits:?}");
-    // A schema-2 file without its vocabulary is refused, naming the field.
+    // A file without its vocabulary is refused, naming the field.
     map.schema_version = MAP_SCHEMA_VERSION;
     std::fs::write(&path, serde_json::to_string(&map).unwrap()).unwrap();
     let err = VisualMap::load(&path).unwrap_err().to_string();
     assert!(err.contains("vocabulary"), "{err}");
+    // Schemas 1 and 2 hold descriptors of the raw fisheye image: refused with the fix.
+    for old in [1, 2] {
+        let mut m = sample_map();
+        m.schema_version = old;
+        std::fs::write(&path, serde_json::to_string(&m).unwrap()).unwrap();
+        let err = VisualMap::load(&path).unwrap_err().to_string();
+        assert!(
+            err.contains("schema_version") && err.contains("rebuild the map"),
+            "{err}"
+        );
+    }
 }
 
 #[test]

@@ -13,6 +13,7 @@ pub mod certify;
 pub mod detect;
 pub mod error;
 pub mod export;
+pub mod hardware;
 pub mod import;
 pub mod intrinsics;
 pub mod lens_cli;

@@ -167,6 +167,10 @@ enum Command {
     /// List certified units, or show a unit's latest set.
     #[command(subcommand)]
     Units(kiwi_calib::certify::cli::UnitsCommand),
+    /// Printed hardware: generate params.scad and the tool definitions from
+    /// hardware/params.toml, render and check every part (docs/hardware.md).
+    #[command(subcommand)]
+    Hardware(kiwi_calib::hardware::cli::HardwareCommand),
 }
 
 /// Exit status of `validate` for a valid calibration that lacks what `kiwi` needs.
@@ -555,6 +559,9 @@ fn main() -> Result<()> {
         }
         Command::Units(cmd) => {
             print!("{}", kiwi_calib::certify::cli::run_units(&cmd)?);
+        }
+        Command::Hardware(cmd) => {
+            print!("{}", kiwi_calib::hardware::cli::run(&cmd)?);
         }
     }
     Ok(())

@@ -63,6 +63,32 @@ pub fn read_text(path: &Path) -> Result<String> {
     })
 }
 
+/// Parse TOML text into `T`, naming the file and the offending field in errors: `format` names
+/// the document ("TOML tool definition"), `syntax_fix` and `field_fix` say what to do about a
+/// syntax error and about a missing, unknown or mistyped field.
+pub fn parse_toml<T: serde::de::DeserializeOwned>(
+    text: &str,
+    path: &Path,
+    format: &'static str,
+    syntax_fix: &str,
+    field_fix: &str,
+) -> Result<T> {
+    let de = toml::Deserializer::parse(text).map_err(|e| CoreError::Parse {
+        path: path.to_path_buf(),
+        format: "TOML",
+        field: ".".into(),
+        message: e.to_string(),
+        fix: syntax_fix.into(),
+    })?;
+    serde_path_to_error::deserialize(de).map_err(|e| CoreError::Parse {
+        path: path.to_path_buf(),
+        format,
+        field: e.path().to_string(),
+        message: e.inner().to_string(),
+        fix: field_fix.into(),
+    })
+}
+
 /// Create `root/<date>` or, if that exists, `root/<date>-2`, `-3`, …, and return it.
 /// Creation is atomic (`create_dir` fails if the folder exists), so two processes certifying
 /// the same unit at once still get two folders and nothing is ever overwritten.

@@ -8,6 +8,8 @@
 //! - [`layout`]: `session.toml` and the prepared-episode folder layout.
 //! - [`io`]: atomic writes, never-overwritten dated folders, hashes.
 //! - [`args`]: checks of numbers given on command lines.
+//! - [`tool`]: tool definitions; [`hardware`]: the hardware parameter file and what is
+//!   generated from it (the OpenSCAD parameters, the tool definitions).
 //! - [`audio`]: WAV decoding and resampling; [`fit`]: the robust line fit; [`rig`]: the QR-clock
 //!   rig's contract.
 //!
@@ -22,6 +24,7 @@ pub mod camera;
 pub mod error;
 pub mod fit;
 pub mod geometry;
+pub mod hardware;
 pub mod imu;
 pub mod io;
 pub mod kalibr;

@@ -174,20 +174,13 @@ impl ToolDefinition {
 
     /// Parse and validate definition text; `path` names it in errors.
     pub fn parse(text: &str, path: &Path) -> Result<Self> {
-        let de = toml::Deserializer::parse(text).map_err(|e| CoreError::Parse {
-            path: path.to_path_buf(),
-            format: "TOML",
-            field: ".".into(),
-            message: e.to_string(),
-            fix: "fix the syntax (see hardware/tools/README.md)".into(),
-        })?;
-        let def: Self = serde_path_to_error::deserialize(de).map_err(|e| CoreError::Parse {
-            path: path.to_path_buf(),
-            format: "TOML tool definition",
-            field: e.path().to_string(),
-            message: e.inner().to_string(),
-            fix: "compare with hardware/tools/chopstick.toml and README.md there".into(),
-        })?;
+        let def: Self = crate::io::parse_toml(
+            text,
+            path,
+            "TOML tool definition",
+            "fix the syntax (see hardware/tools/README.md)",
+            "compare with hardware/tools/chopstick.toml and README.md there",
+        )?;
         def.validate().map_err(|e| e.at_path(path))?;
         Ok(def)
     }

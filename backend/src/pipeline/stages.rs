@@ -67,7 +67,7 @@ pub fn version(kind: &StageKind) -> &'static str {
         StageKind::Metric { .. } => "metric-1",
         StageKind::Placement { .. } => "placement-1",
         StageKind::Observations { .. } => "observations-1",
-        StageKind::Fusion { .. } => "fusion-1",
+        StageKind::Fusion { .. } => "fusion-2",
         StageKind::Gripper { .. } => "gripper-1",
         StageKind::Outputs { .. } => "outputs-1",
     }
@@ -480,6 +480,16 @@ fn run_tool(env: &StageEnv<'_>, side: Side) -> Result<()> {
     write_json(&env.out.join(TOOL_FILE), &record)
 }
 
+/// `summary.json` of a fusion stage.
+#[derive(Debug, Clone, Copy, serde::Serialize, serde::Deserialize)]
+pub struct FusionSummary {
+    /// Solver and residual statistics.
+    #[serde(flatten)]
+    pub statistics: crate::fusion::FusionStatistics,
+    /// Front frames outside the IMU log (not fused, not in the outputs).
+    pub frames_outside_imu: usize,
+}
+
 /// Frames of the map episode searched for the tool's body tag.
 const TOOL_CALIBRATION_FRAMES: usize = 60;
 
@@ -636,13 +646,23 @@ fn run_fusion(env: &StageEnv<'_>, episode: &str, side: Side) -> Result<()> {
     })?;
     let imu = ImuSeries::read_csv(&layout.imu_csv(w.camera))?;
     let frames = kiwi_core::layout::read_frames_csv(&layout.frames_csv(w.camera, "front"))?;
-    let node_times: Vec<f64> = frames.iter().map(|f| f.t + w.front.time_shift_s).collect();
+    // Frames exposed before the IMU log starts or after it ends (a camera starts its IMU a
+    // moment after its first frame) cannot be states of the graph: they are left out and
+    // counted.
+    let (first, last) = imu.time_range();
+    let (camera_times, node_times): (Vec<f64>, Vec<f64>) = frames
+        .iter()
+        .map(|f| (f.t, f.t + w.front.time_shift_s))
+        .filter(|(_, t)| (first..=last).contains(t))
+        .unzip();
     let config = FusionConfig::default();
     let result = fuse(imu.samples(), &w.imu, &node_times, &observations, &config)?;
-    let camera_times: Vec<f64> = frames.iter().map(|f| f.t).collect();
     write_fused(&env.out.join(FUSED_FILE), &camera_times, &result.nodes)?;
-    let stats = crate::fusion::residual_statistics(&result, &observations, &config);
-    write_json(&env.out.join(SUMMARY_FILE), &stats)?;
+    let summary = FusionSummary {
+        statistics: crate::fusion::residual_statistics(&result, &observations, &config),
+        frames_outside_imu: frames.len() - node_times.len(),
+    };
+    write_json(&env.out.join(SUMMARY_FILE), &summary)?;
     // Read back once: the file is what later stages use, so it must parse.
     read_fused(&env.out.join(FUSED_FILE))?;
     Ok(())
@@ -837,7 +857,7 @@ fn run_outputs(env: &StageEnv<'_>, episode: &str) -> Result<()> {
             .join(SUMMARY_FILE),
             "observation summary",
         )?;
-        let fusion = read_json_file(
+        let fusion: FusionSummary = read_json_file(
             &env.dep_dir(&StageKind::Fusion {
                 episode: episode.to_string(),
                 side,
@@ -876,7 +896,8 @@ fn run_outputs(env: &StageEnv<'_>, episode: &str) -> Result<()> {
             front: loc(Lens::Front)?,
             rear: loc(Lens::Rear)?,
             observations,
-            fusion,
+            fusion: fusion.statistics,
+            frames_outside_imu: fusion.frames_outside_imu,
             placement,
             tool_calibrated,
         });

@@ -286,8 +286,24 @@ pub fn build_map_with(
     loop_closure: bool,
     progress: &mut dyn FnMut(usize, usize),
 ) -> Result<(VisualMap, MapSummary)> {
+    build_map_with_orb(stream, loop_closure, &OrbOptions::default(), progress)
+}
+
+/// [`build_map_with`] with the ORB settings of the front end and the keyframes (e.g. raw-image
+/// descriptors, `OrbOptions::rectified` off, to compare with the default; a map's query must
+/// use the same setting).
+pub fn build_map_with_orb(
+    stream: &LensStream,
+    loop_closure: bool,
+    orb_options: &OrbOptions,
+    progress: &mut dyn FnMut(usize, usize),
+) -> Result<(VisualMap, MapSummary)> {
     let start = Instant::now();
-    let mut tracker = FrameTracker::new(TrackerOptions::default(), stream.mask.clone())?;
+    let tracker_options = TrackerOptions {
+        orb: *orb_options,
+        ..TrackerOptions::default()
+    };
+    let mut tracker = FrameTracker::new(tracker_options, stream.mask.clone())?;
     let n = stream.frames.len();
     let mut frames = Vec::with_capacity(n);
     stream.for_each_frame(|i, img| {
@@ -297,7 +313,7 @@ pub fn build_map_with(
     })?;
     let mapper_options = mapper_options_for(&stream.camera);
     let mut recon = reconstruct(&frames, &mapper_options)?;
-    let mut orb = OrbExtractor::new(&OrbOptions::default())?;
+    let mut orb = OrbExtractor::new(orb_options)?;
     let mut features = Vec::with_capacity(recon.keyframes.len());
     for kf in &recon.keyframes {
         let img = stream.load(kf.frame as usize)?;
@@ -372,6 +388,15 @@ pub struct LocalizeSummary {
     pub seconds: f64,
     /// Frames per second of wall time.
     pub frames_per_second: f64,
+    /// Relocalization attempts (forward and backward passes).
+    pub relocalization_attempts: usize,
+    /// Mean wall time of one relocalization attempt (ms; ORB included).
+    pub relocalization_ms_per_attempt: f64,
+    /// Relocalization attempts per second of stream time lost (0 without lost frames).
+    pub relocalization_attempts_per_lost_second: f64,
+    /// Time from the stream's first frame to the first frame localized in the forward pass
+    /// (s; `None` if none was): how long a stream that starts lost takes to find the map.
+    pub first_pose_after_s: Option<f64>,
 }
 
 /// Summarize per-frame results.
@@ -399,7 +424,29 @@ pub fn summarize(results: &[FrameLocalization], seconds: f64) -> LocalizeSummary
         median_inliers: inliers.get(inliers.len() / 2).copied().unwrap_or(0),
         seconds,
         frames_per_second: results.len() as f64 / seconds.max(1e-9),
+        relocalization_attempts: 0,
+        relocalization_ms_per_attempt: 0.0,
+        relocalization_attempts_per_lost_second: 0.0,
+        first_pose_after_s: None,
     }
+}
+
+/// Seconds of stream time the lost frames of `results` stand for (each frame counts one mean
+/// frame interval).
+fn lost_seconds(results: &[FrameLocalization]) -> f64 {
+    let (Some(first), Some(last)) = (results.first(), results.last()) else {
+        return 0.0;
+    };
+    let n = results.len();
+    if n < 2 || last.t <= first.t {
+        return 0.0;
+    }
+    let interval = (last.t - first.t) / (n - 1) as f64;
+    interval
+        * results
+            .iter()
+            .filter(|r| r.status == LocalizationStatus::Lost)
+            .count() as f64
 }
 
 /// Localize every frame of a stream against a frozen map (which must match the lens), then
@@ -419,8 +466,25 @@ pub fn localize_stream(
         progress(i + 1, n);
         Ok(())
     })?;
-    backfill(map, stream, options, &mut results)?;
-    let summary = summarize(&results, start.elapsed().as_secs_f64());
+    let lost_forward = lost_seconds(&results);
+    let first_pose_after_s = results
+        .iter()
+        .find(|r| r.status != LocalizationStatus::Lost)
+        .zip(results.first())
+        .map(|(r, f)| r.t - f.t);
+    let (mut attempts, mut attempt_s) = localizer.relocalization_cost();
+    let (back_attempts, back_s) = backfill(map, stream, options, &mut results)?;
+    attempts += back_attempts;
+    attempt_s += back_s;
+    let mut summary = summarize(&results, start.elapsed().as_secs_f64());
+    summary.relocalization_attempts = attempts;
+    summary.first_pose_after_s = first_pose_after_s;
+    summary.relocalization_ms_per_attempt = 1e3 * attempt_s / attempts.max(1) as f64;
+    summary.relocalization_attempts_per_lost_second = if lost_forward > 0.0 {
+        attempts as f64 / lost_forward
+    } else {
+        0.0
+    };
     Ok((results, summary))
 }
 
@@ -449,14 +513,16 @@ const BACKFILL_LEAD: usize = 2;
 /// side). A frame lost again keeps its forward result and the pass goes on (the localizer
 /// relocalizes, at its own reduced rate after repeated failures); the same acceptance rules
 /// apply, so a filled frame is as trustworthy as any other. Sequential and seeded by frame
-/// index, so the result stays deterministic.
+/// index, so the result stays deterministic. Returns its relocalization attempts and their
+/// wall time (s).
 fn backfill(
     map: &VisualMap,
     stream: &LensStream,
     options: &LocalizerOptions,
     results: &mut [FrameLocalization],
-) -> Result<()> {
+) -> Result<(usize, f64)> {
     let n = results.len();
+    let (mut attempts, mut seconds) = (0, 0.0);
     for b in 0..n {
         if results[b].status == LocalizationStatus::Lost {
             continue;
@@ -477,8 +543,11 @@ fn backfill(
                 results[j] = r;
             }
         }
+        let (a, s) = localizer.relocalization_cost();
+        attempts += a;
+        seconds += s;
     }
-    Ok(())
+    Ok((attempts, seconds))
 }
 
 /// Header of `poses.csv`.

@@ -134,6 +134,17 @@ impl GrayImage {
             .map_err(cv_err("gray image"))
     }
 
+    /// Bilinear value at a sub-pixel position (pixel centres at integers), 0 outside.
+    pub fn sample(&self, x: f64, y: f64) -> f32 {
+        let (fx, fy) = (x.floor(), y.floor());
+        let (ax, ay) = ((x - fx) as f32, (y - fy) as f32);
+        let (x0, y0) = (fx as i64, fy as i64);
+        let v = |dx: i64, dy: i64| f32::from(self.get(x0 + dx, y0 + dy));
+        let top = v(0, 0) + (v(1, 0) - v(0, 0)) * ax;
+        let bottom = v(0, 1) + (v(1, 1) - v(0, 1)) * ax;
+        top + (bottom - top) * ay
+    }
+
     /// Pixel value at integer coordinates, 0 outside.
     pub fn get(&self, x: i64, y: i64) -> u8 {
         if x < 0 || y < 0 || x >= i64::from(self.width) || y >= i64::from(self.height) {
@@ -250,6 +261,12 @@ pub struct OrbOptions {
     pub levels: i32,
     /// FAST threshold (intensity steps).
     pub fast_threshold: i32,
+    /// Describe each keypoint on a patch resampled around its bearing (a small pinhole view
+    /// along it, at the keypoint's angular scale) instead of on the raw fisheye image: a point
+    /// seen near the image centre in one view and 35-60° off-axis in another is rendered by a
+    /// 190° lens at another scale and with an anisotropic stretch, which raw ORB descriptors do
+    /// not survive; on the rectified patch only the true change of viewpoint remains.
+    pub rectified: bool,
 }
 
 impl Default for OrbOptions {
@@ -259,9 +276,22 @@ impl Default for OrbOptions {
             scale_factor: 1.2,
             levels: 8,
             fast_threshold: 20,
+            rectified: true,
         }
     }
 }
+
+/// Side (px) of the patch resampled around a keypoint for its rectified descriptor: ORB's
+/// rotated sampling pattern reaches ~19 px from the centre and its 7 × 7 smoothing 3 px more.
+const RECTIFIED_PATCH: usize = 48;
+/// Exact projections per side of a rectified patch (the pixel positions between them are
+/// interpolated bilinearly: the lens mapping is smooth at this scale).
+const RECTIFIED_GRID: usize = 6;
+/// Empty border (px) around the mosaic of patches: ORB refuses keypoints nearer its edge
+/// threshold to the image border.
+const MOSAIC_MARGIN: usize = ORB_PATCH as usize + 1;
+/// Radius (px) of the intensity-centroid disc that orients a patch (ORB's half patch).
+const ORIENTATION_RADIUS: i64 = 15;
 
 /// Border (px) that ORB keeps free (its patch radius): also used for its edge threshold.
 const ORB_PATCH: i32 = 31;
@@ -269,24 +299,88 @@ const ORB_PATCH: i32 = 31;
 /// ORB detector/descriptor on raw fisheye images.
 pub struct OrbExtractor {
     orb: Ptr<opencv::features2d::ORB>,
+    /// One-level ORB that describes the rectified patches (when the options ask for them).
+    describer: Option<Ptr<opencv::features2d::ORB>>,
+    scale_factor: f64,
 }
 
 impl OrbExtractor {
     /// A detector with these settings.
     pub fn new(options: &OrbOptions) -> Result<Self> {
-        let orb = opencv::features2d::ORB::create(
-            options.max_features,
-            options.scale_factor,
-            options.levels,
-            ORB_PATCH,
-            0,
-            2,
-            opencv::features2d::ORB_ScoreType::HARRIS_SCORE,
-            ORB_PATCH,
-            options.fast_threshold,
-        )
-        .map_err(cv_err("ORB"))?;
-        Ok(Self { orb })
+        let create = |levels: i32| {
+            opencv::features2d::ORB::create(
+                options.max_features,
+                options.scale_factor,
+                levels,
+                ORB_PATCH,
+                0,
+                2,
+                opencv::features2d::ORB_ScoreType::HARRIS_SCORE,
+                ORB_PATCH,
+                options.fast_threshold,
+            )
+            .map_err(cv_err("ORB"))
+        };
+        Ok(Self {
+            orb: create(options.levels)?,
+            describer: if options.rectified {
+                Some(create(1)?)
+            } else {
+                None
+            },
+            scale_factor: f64::from(options.scale_factor),
+        })
+    }
+
+    /// Rectified descriptors of given keypoints (of `image`) when the options ask for them
+    /// (`None` per keypoint that cannot be described); `None` overall when they do not (the
+    /// caller keeps raw descriptors).
+    pub fn describe(
+        &mut self,
+        image: &GrayImage,
+        camera: &dyn CameraModel,
+        keypoints: &[Keypoint],
+    ) -> Result<Option<Vec<Option<Descriptor>>>> {
+        match self.describer.as_mut() {
+            Some(d) => Ok(Some(describe_rectified(
+                d,
+                image,
+                camera,
+                keypoints,
+                self.scale_factor,
+            )?)),
+            None => Ok(None),
+        }
+    }
+
+    /// Replace the descriptors by rectified ones when the options ask for them (keypoints
+    /// that cannot be described that way are dropped).
+    fn finish(
+        &mut self,
+        image: &GrayImage,
+        camera: &dyn CameraModel,
+        features: FrameFeatures,
+    ) -> Result<FrameFeatures> {
+        let Some(describer) = self.describer.as_mut() else {
+            return Ok(features);
+        };
+        let described = describe_rectified(
+            describer,
+            image,
+            camera,
+            &features.keypoints,
+            self.scale_factor,
+        )?;
+        let (keypoints, descriptors) = features
+            .keypoints
+            .into_iter()
+            .zip(described)
+            .filter_map(|(k, d)| d.map(|d| (k, d)))
+            .unzip();
+        Ok(FrameFeatures {
+            keypoints,
+            descriptors,
+        })
     }
 
     /// Detect and describe; keypoints outside `mask` or outside the lens's image circle are
@@ -335,7 +429,7 @@ impl OrbExtractor {
         .map_err(cv_err("ORB"))?;
         let mut out = Vec::with_capacity(keypoints.len());
         collect_keypoints(&keypoints, &desc, (0, 0), None, camera, &mut out)?;
-        Ok(sorted_features(out))
+        self.finish(image, camera, sorted_features(out))
     }
 
     /// Like [`OrbExtractor::extract`], but only inside the given pixel rectangles
@@ -397,8 +491,174 @@ impl OrbExtractor {
             let inner = [f64::from(x0), f64::from(y0), f64::from(x1), f64::from(y1)];
             collect_keypoints(&keypoints, &desc, (cx0, cy0), Some(inner), camera, &mut out)?;
         }
-        Ok(sorted_features(out))
+        self.finish(image, camera, sorted_features(out))
     }
+}
+
+/// Pixels per radian of the lens at its image centre.
+fn centre_pixels_per_rad(camera: &dyn CameraModel) -> Option<f64> {
+    let (w, h) = camera.resolution();
+    let c = Point2::new(f64::from(w) / 2.0, f64::from(h) / 2.0);
+    let a = camera.unproject(&c)?;
+    let b = camera.unproject(&Point2::new(c.x + 1.0, c.y))?;
+    let angle = a.angle(&b);
+    (angle > 0.0).then(|| 1.0 / angle)
+}
+
+/// The tangent frame of a keypoint's rectified patch: unit `e1` along the raw image's x
+/// direction at the keypoint, `e2 = b × e1` (image y, down), and the angle per patch pixel:
+/// the detection's pyramid scale over the lens's local pixels per radian there (geometric mean
+/// of the two directions), so the patch spans the angle raw ORB would have described.
+fn patch_frame(
+    camera: &dyn CameraModel,
+    keypoint: &Keypoint,
+    scale_factor: f64,
+) -> Option<(Vector3<f64>, Vector3<f64>, f64)> {
+    let b = keypoint.bearing;
+    let px = camera.unproject(&Point2::new(keypoint.pixel.x + 1.0, keypoint.pixel.y))?;
+    let py = camera.unproject(&Point2::new(keypoint.pixel.x, keypoint.pixel.y + 1.0))?;
+    let tangent = |v: &Vector3<f64>| v - b * b.dot(v);
+    let dx = tangent(&(px.into_inner() - b));
+    let dy = tangent(&(py.into_inner() - b));
+    // Radians of tangent plane per pixel along x and y; their cross product's length is the
+    // area of one pixel in rad².
+    let area = dx.cross(&dy).norm();
+    if area.is_nan() || area <= 0.0 || dx.norm() <= 0.0 {
+        return None;
+    }
+    let e1 = dx.normalize();
+    let e2 = b.cross(&e1);
+    let step = scale_factor.powi(keypoint.octave.max(0)) * area.sqrt();
+    Some((e1, e2, step))
+}
+
+/// Rectified ORB descriptors of `keypoints` (see [`OrbOptions::rectified`]): around each
+/// keypoint's bearing a [`RECTIFIED_PATCH`]-pixel gnomonic view is resampled from the raw
+/// image (exact projections on a coarse grid, bilinear in between), oriented by its intensity
+/// centroid, laid into one mosaic image, and described by a one-level ORB at the patch centres.
+/// `None` for a keypoint OpenCV could not describe.
+fn describe_rectified(
+    describer: &mut Ptr<opencv::features2d::ORB>,
+    image: &GrayImage,
+    camera: &dyn CameraModel,
+    keypoints: &[Keypoint],
+    scale_factor: f64,
+) -> Result<Vec<Option<Descriptor>>> {
+    let n = keypoints.len();
+    if n == 0 {
+        return Ok(Vec::new());
+    }
+    if centre_pixels_per_rad(camera).is_none() {
+        return Ok(vec![None; n]);
+    }
+    let cols = (n as f64).sqrt().ceil() as usize;
+    let rows = n.div_ceil(cols);
+    let (mw, mh) = (
+        2 * MOSAIC_MARGIN + cols * RECTIFIED_PATCH,
+        2 * MOSAIC_MARGIN + rows * RECTIFIED_PATCH,
+    );
+    let mut mosaic = vec![0u8; mw * mh];
+    let mut cv_keypoints = Vector::<KeyPoint>::new();
+    let half = (RECTIFIED_PATCH / 2) as f64;
+    let cell = RECTIFIED_PATCH as f64 / RECTIFIED_GRID as f64;
+    let mut patch = vec![0f32; RECTIFIED_PATCH * RECTIFIED_PATCH];
+    for (i, kp) in keypoints.iter().enumerate() {
+        let Some((e1, e2, step)) = patch_frame(camera, kp, scale_factor) else {
+            continue;
+        };
+        // Exact pixel positions on the grid nodes (patch coordinates relative to the centre).
+        let nodes = RECTIFIED_GRID + 1;
+        let mut grid: Vec<Option<Point2<f64>>> = Vec::with_capacity(nodes * nodes);
+        for gy in 0..nodes {
+            for gx in 0..nodes {
+                let (u, v) = (gx as f64 * cell - half, gy as f64 * cell - half);
+                let d = kp.bearing + e1 * (u * step) + e2 * (v * step);
+                grid.push(camera.project(&d));
+            }
+        }
+        if grid.iter().any(Option::is_none) {
+            continue;
+        }
+        let node = |gx: usize, gy: usize| grid[gy * nodes + gx].unwrap_or_else(Point2::origin);
+        for py in 0..RECTIFIED_PATCH {
+            let fy = py as f64 / cell;
+            let gy = (fy as usize).min(RECTIFIED_GRID - 1);
+            let ay = fy - gy as f64;
+            for px in 0..RECTIFIED_PATCH {
+                let fx = px as f64 / cell;
+                let gx = (fx as usize).min(RECTIFIED_GRID - 1);
+                let ax = fx - gx as f64;
+                let (a, b, c, d) = (
+                    node(gx, gy),
+                    node(gx + 1, gy),
+                    node(gx, gy + 1),
+                    node(gx + 1, gy + 1),
+                );
+                let top = a.coords + (b.coords - a.coords) * ax;
+                let bottom = c.coords + (d.coords - c.coords) * ax;
+                let p = top + (bottom - top) * ay;
+                patch[py * RECTIFIED_PATCH + px] = image.sample(p.x, p.y);
+            }
+        }
+        // Orientation: ORB's intensity centroid over a disc about the centre.
+        let centre = RECTIFIED_PATCH as i64 / 2;
+        let (mut m10, mut m01) = (0.0f64, 0.0f64);
+        for dy in -ORIENTATION_RADIUS..=ORIENTATION_RADIUS {
+            for dx in -ORIENTATION_RADIUS..=ORIENTATION_RADIUS {
+                if dx * dx + dy * dy > ORIENTATION_RADIUS * ORIENTATION_RADIUS {
+                    continue;
+                }
+                let v = f64::from(
+                    patch[((centre + dy) as usize) * RECTIFIED_PATCH + (centre + dx) as usize],
+                );
+                m10 += dx as f64 * v;
+                m01 += dy as f64 * v;
+            }
+        }
+        let angle = m01.atan2(m10).to_degrees().rem_euclid(360.0);
+        let (col, row) = (i % cols, i / cols);
+        let (ox, oy) = (
+            MOSAIC_MARGIN + col * RECTIFIED_PATCH,
+            MOSAIC_MARGIN + row * RECTIFIED_PATCH,
+        );
+        for py in 0..RECTIFIED_PATCH {
+            for px in 0..RECTIFIED_PATCH {
+                mosaic[(oy + py) * mw + ox + px] =
+                    patch[py * RECTIFIED_PATCH + px].round().clamp(0.0, 255.0) as u8;
+            }
+        }
+        let kp_cv = KeyPoint::new_coords(
+            (ox + RECTIFIED_PATCH / 2) as f32,
+            (oy + RECTIFIED_PATCH / 2) as f32,
+            ORB_PATCH as f32,
+            angle as f32,
+            kp.response,
+            0,
+            i as i32,
+        )
+        .map_err(cv_err("ORB rectified"))?;
+        cv_keypoints.push(kp_cv);
+    }
+    let img = Mat::new_rows_cols_with_data(mh as i32, mw as i32, &mosaic)
+        .map_err(cv_err("ORB rectified"))?;
+    let mut desc = Mat::default();
+    describer
+        .detect_and_compute(&img, &Mat::default(), &mut cv_keypoints, &mut desc, true)
+        .map_err(cv_err("ORB rectified"))?;
+    let mut out = vec![None; n];
+    for (row, kp) in cv_keypoints.iter().enumerate() {
+        let i = kp.class_id();
+        let Some(slot) = usize::try_from(i).ok().and_then(|i| out.get_mut(i)) else {
+            continue;
+        };
+        let bytes = desc
+            .at_row::<u8>(row as i32)
+            .map_err(cv_err("ORB rectified"))?;
+        if bytes.len() >= 32 {
+            *slot = Some(Descriptor::from_bytes(&bytes[..32]));
+        }
+    }
+    Ok(out)
 }
 
 /// A crop's ORB keypoints beyond its share of the full-frame budget: crops are small and their

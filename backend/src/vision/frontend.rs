@@ -20,7 +20,7 @@ use kiwi_core::camera::CameraModel;
 
 use crate::error::Result;
 use crate::vision::features::{
-    Descriptor, GrayImage, KltOptions, Mask, OrbExtractor, OrbOptions, track_klt,
+    Descriptor, GrayImage, Keypoint, KltOptions, Mask, OrbExtractor, OrbOptions, track_klt,
 };
 use crate::vision::mapping::{MappingFrame, TrackObservation};
 
@@ -65,6 +65,8 @@ impl Default for TrackerOptions {
 pub struct FrameTracker {
     options: TrackerOptions,
     orb: OrbExtractor,
+    /// Describes the keypoints that start tracks (see `FrameTracker::new`).
+    describer: OrbExtractor,
     mask: Mask,
     next_track: u64,
     previous: Option<GrayImage>,
@@ -100,7 +102,13 @@ impl FrameTracker {
             .collect();
         let usable = usable_cells.iter().filter(|&&u| u).count().max(1);
         Ok(Self {
-            orb: OrbExtractor::new(&options.orb)?,
+            // Detection describes on the raw image (cheap); the few keypoints that start tracks
+            // are then described as the options ask (rectified patches by default).
+            orb: OrbExtractor::new(&OrbOptions {
+                rectified: false,
+                ..options.orb
+            })?,
+            describer: OrbExtractor::new(&options.orb)?,
             share: options.target_tracks.div_ceil(usable).max(1),
             options,
             counts: vec![0; usable_cells.len()],
@@ -175,6 +183,8 @@ impl FrameTracker {
             // 320 px tabletop localized with a worst error of 53 mm instead of 24 mm.) A taken
             // keypoint blocks its own pixel in `detect_mask`, so the second pass skips it.
             let first_pass = if coverage_due { 0 } else { 1 };
+            let born_from = observations.len();
+            let mut born: Vec<Keypoint> = Vec::new();
             for pass in first_pass..2 {
                 for (kp, desc) in found.keypoints.iter().zip(&found.descriptors) {
                     if pass == 1 && survivors.len() >= wanted {
@@ -201,6 +211,19 @@ impl FrameTracker {
                         bearing: kp.bearing,
                         pixel: kp.pixel,
                     });
+                    born.push(*kp);
+                }
+            }
+            if let Some(described) = self.describer.describe(&image, camera, &born)? {
+                for (o, d) in observations[born_from..].iter().zip(described) {
+                    match d {
+                        Some(d) => {
+                            self.births.insert(o.track, d);
+                        }
+                        None => {
+                            self.births.remove(&o.track);
+                        }
+                    }
                 }
             }
         }

@@ -8,18 +8,26 @@
 //!    are extracted and **guided matching** adds landmarks of the keyframes nearest to the
 //!    estimated pose: each is projected with the pose and matched to the keypoints within a
 //!    few pixels by Hamming distance (ratio-checked), then the pose is re-estimated.
-//! 2. **Relocalization** (tracking failed or the previous frame was lost): ORB features are
-//!    quantized into the map's bag of words; the best-scoring keyframes are candidates; the
-//!    query is matched (mutual + ratio) to the landmarks of each candidate and its neighbours —
-//!    to each landmark's representative descriptor and to every keyframe view of it in that
-//!    window (a fisheye view from elsewhere resembles one view far better than a medoid),
-//!    P3P RANSAC gives a pose, guided matching over the same landmarks densifies it, and the
-//!    candidate with the most inliers wins.
+//! 2. **Relocalization** (tracking failed or the previous frame was lost): ORB features
+//!    (described on rectified patches, see `OrbOptions::rectified`) are quantized into the
+//!    map's bag of words; the best-scoring keyframes are candidates; the query is matched
+//!    (mutual + ratio) to the landmarks of each candidate and its neighbours — to each
+//!    landmark's representative descriptor and to every keyframe view of it in that window.
+//!    P3P RANSAC on those matches needs only a *hypothesis* (`relocalization_hypothesis_inliers`,
+//!    12): with repeated texture and views from elsewhere few descriptor matches survive the
+//!    ratio test, but a right pose projects many landmarks onto their keypoints. Guided
+//!    matching then densifies it in rounds, over the candidate's landmarks and then over those
+//!    of the keyframes that view the estimated pose's surroundings best (near in centre *and*
+//!    in viewing direction), and the candidate with the most inliers wins. While a stream is
+//!    lost, relocalization runs on every frame for its first `relocalization_eager_s`, then on
+//!    every `relocalization_interval`-th frame; its cost is counted.
 //! 3. **Acceptance** (both paths): at least `min_inliers` inliers, an inlier ratio of at least
-//!    `min_inlier_ratio` among the correspondences, and inlier bearings spread over the sphere
-//!    (square root of the middle eigenvalue of their covariance at least `min_spread_rad`), so
-//!    that a pose resting on a small cluster or on a coincidental minority is reported lost
-//!    rather than output.
+//!    `min_inlier_ratio` among the correspondences, inlier bearings spread over the sphere
+//!    (square root of the middle eigenvalue of their covariance at least `min_spread_rad`), and
+//!    the position's uncertainty (`max_position_std`); a relocalized pose must in addition be
+//!    supported across the view the map predicts (`min_view_support`: a pose fitted to one copy
+//!    of a repeated photo explains that photo only), so that a pose resting on a small cluster,
+//!    a coincidental minority or a repeated pattern is reported lost rather than output.
 //!
 //! Determinism: RANSAC seeds derive from the frame index, OpenCV's ORB and KLT are
 //! deterministic, candidates and matches are ordered; one episode runs sequentially, so the
@@ -106,6 +114,24 @@ pub struct LocalizerOptions {
     pub min_inliers: usize,
     /// Fewest inliers of an accepted relocalization (no motion prior: stricter).
     pub min_inliers_relocalization: usize,
+    /// Fewest descriptor-match inliers of a relocalization *hypothesis*: the pose that guided
+    /// matching then densifies and the acceptance rules judge (with repeated texture and views
+    /// from elsewhere, few descriptor matches survive the ratio test, but a right pose
+    /// projects many more landmarks onto their keypoints).
+    pub relocalization_hypothesis_inliers: usize,
+    /// Rounds of guided densification of a relocalization hypothesis (each re-projects the
+    /// landmarks of the keyframes that view the current pose's surroundings best).
+    pub relocalization_guided_rounds: usize,
+    /// A relocalized pose must be supported across the view the map predicts: of the cells of
+    /// a `support_grid` × `support_grid` image grid where at least `support_min_predicted` map
+    /// landmarks project (from the keyframes viewing that pose best) and the query has
+    /// keypoints, at least this share must hold an inlier. A pose fitted to one copy of a
+    /// repeated photo explains that photo only.
+    pub min_view_support: f64,
+    /// See `min_view_support`.
+    pub support_grid: u32,
+    /// See `min_view_support`.
+    pub support_min_predicted: usize,
     /// Smallest inlier share among the correspondences of an accepted pose.
     pub min_inlier_ratio: f64,
     /// Smallest angular spread (rad) of the inlier bearings.
@@ -148,6 +174,10 @@ pub struct LocalizerOptions {
     pub relocalization_retries: usize,
     /// See `relocalization_retries`.
     pub relocalization_interval: usize,
+    /// While a stream has been lost for less than this (s, frame times), relocalization is
+    /// tried on every frame, whatever `relocalization_retries` says: the first second of a
+    /// query (the start of every episode after the mapping one) must find the map.
+    pub relocalization_eager_s: f64,
     /// KLT settings.
     pub klt: KltOptions,
     /// ORB settings (guided matching and relocalization).
@@ -171,6 +201,18 @@ impl Default for LocalizerOptions {
             // relocalization at the edge of a front map's coverage (seed 7 walk start, 41
             // inliers) was 4 cm off and the frames tracked from it up to 5.5 cm.
             min_inliers_relocalization: 45,
+            // P3P on 12 consistent matches of one candidate window is a hypothesis worth
+            // densifying; it is never output on its own.
+            relocalization_hypothesis_inliers: 12,
+            // Window, then the best-viewing keyframes twice: the third round rarely adds more.
+            relocalization_guided_rounds: 3,
+            // A right pose from elsewhere matched inliers in most predicted cells on the photo
+            // room's revisit; one photo copy covers a few of an 8 × 8 grid.
+            min_view_support: 0.3,
+            // 8 × 8 cells of 120 px at 960 px: a photo or a tile panel covers a few of them.
+            support_grid: 8,
+            // A cell with fewer predicted landmarks is too thin to expect an inlier in.
+            support_min_predicted: 3,
             // A true pose explains most tracked correspondences; a wrong one a minority.
             min_inlier_ratio: 0.5,
             // ~6°: inliers on one small patch constrain the position poorly.
@@ -204,6 +246,9 @@ impl Default for LocalizerOptions {
             // Every 4th frame (~0.13 s at 30 Hz): a view that comes into the map is found within
             // a few frames, and the backward pass fills the frames before it.
             relocalization_interval: 4,
+            // One second of every frame (~30 attempts at 30 Hz; 50-270 ms each measured at
+            // 320 px on a loaded machine): the cost of starting an episode, paid once.
+            relocalization_eager_s: 1.0,
             klt: KltOptions {
                 // 15 px is enough between consecutive frames and ~2× cheaper than 21.
                 window: 15,
@@ -277,6 +322,32 @@ pub fn median_keyframe_depth(map: &VisualMap) -> Option<f64> {
     Some(depths[depths.len() / 2])
 }
 
+/// One relocalization candidate as tried (for diagnostics against the truth).
+#[derive(Debug, Clone)]
+pub struct CandidateTrace {
+    /// The candidate keyframe.
+    pub keyframe: usize,
+    /// Its place-recognition score.
+    pub score: f64,
+    /// Descriptor matches: (query keypoint index, landmark).
+    pub matches: Vec<(usize, u32)>,
+    /// Inliers of the candidate's final estimate (0 without one).
+    pub inliers: usize,
+    /// The final estimate, if RANSAC found one.
+    pub cam_from_map: Option<Pose>,
+    /// Empty when accepted, else why not.
+    pub rejection: String,
+}
+
+/// What one relocalization attempt saw: the query's features and every candidate tried.
+#[derive(Debug, Clone)]
+pub struct RelocalizationTrace {
+    /// The query frame's ORB features (keypoint indices of the matches refer to these).
+    pub features: FrameFeatures,
+    /// Candidates in the order tried.
+    pub candidates: Vec<CandidateTrace>,
+}
+
 /// A 2-D correspondence: landmark, pixel and bearing in the query frame.
 #[derive(Debug, Clone, Copy)]
 struct Correspondence {
@@ -332,9 +403,16 @@ pub struct Localizer {
     keyframe_views: Vec<Vec<(Descriptor, u32)>>,
     keyframe_landmarks: Vec<Vec<u32>>,
     keyframe_centres: Vec<Vector3<f64>>,
+    /// Each keyframe's optical axis in the map.
+    keyframe_axes: Vec<Vector3<f64>>,
     state: Option<TrackState>,
     /// Frames in a row that reached relocalization without a pose.
     failed_run: usize,
+    /// Time of the first frame of the current run without a pose.
+    lost_since: Option<f64>,
+    /// Relocalization attempts so far and their wall time (s): the cost reported per stream.
+    attempts: usize,
+    attempt_seconds: f64,
 }
 
 fn vision_err(message: String) -> BackendError {
@@ -375,6 +453,15 @@ impl Localizer {
                 k.cam_from_map
                     .to_pose()
                     .map_or_else(Vector3::zeros, |p| p.inverse().translation.vector)
+            })
+            .collect();
+        let keyframe_axes = map
+            .keyframes
+            .iter()
+            .map(|k| {
+                k.cam_from_map
+                    .to_pose()
+                    .map_or_else(Vector3::z, |p| p.inverse().rotation * Vector3::z())
             })
             .collect();
         let keyframe_views: Vec<Vec<(Descriptor, u32)>> = map
@@ -419,9 +506,18 @@ impl Localizer {
             keyframe_views,
             keyframe_landmarks,
             keyframe_centres,
+            keyframe_axes,
             state: None,
             failed_run: 0,
+            lost_since: None,
+            attempts: 0,
+            attempt_seconds: 0.0,
         })
+    }
+
+    /// Relocalization attempts so far and their total wall time (s).
+    pub fn relocalization_cost(&self) -> (usize, f64) {
+        (self.attempts, self.attempt_seconds)
     }
 
     /// Forget the motion prior (the next frame relocalizes).
@@ -502,6 +598,64 @@ impl Localizer {
         Ok(())
     }
 
+    /// Support of a relocalized pose across the view the map predicts (`min_view_support`).
+    fn check_view_support(
+        &self,
+        e: &Estimate,
+        feats: &FrameFeatures,
+    ) -> std::result::Result<(), String> {
+        let (w, h) = self.camera.resolution();
+        let g = self.options.support_grid.max(1);
+        let cell = |p: &Point2<f64>| -> Option<usize> {
+            if p.x < 0.0 || p.y < 0.0 {
+                return None;
+            }
+            let (cx, cy) = ((p.x as u32) * g / w, (p.y as u32) * g / h);
+            (cx < g && cy < g).then_some((cy * g + cx) as usize)
+        };
+        let cells = (g * g) as usize;
+        let (mut predicted, mut textured, mut supported) =
+            (vec![0usize; cells], vec![false; cells], vec![false; cells]);
+        let cos_max = (0.5 * self.camera.valid_fov()).cos();
+        for l in self.viewing_landmarks(&e.cam_from_map, self.options.guided_keyframes) {
+            let pc = (e.cam_from_map * Point3::from(self.positions[l as usize])).coords;
+            let n = pc.norm();
+            if n <= 0.0 || pc.z / n < cos_max {
+                continue;
+            }
+            if let Some(k) = self.camera.project(&pc).as_ref().and_then(cell) {
+                predicted[k] += 1;
+            }
+        }
+        for kp in &feats.keypoints {
+            if let Some(k) = cell(&kp.pixel) {
+                textured[k] = true;
+            }
+        }
+        for c in &e.inliers {
+            if let Some(k) = cell(&c.pixel) {
+                supported[k] = true;
+            }
+        }
+        let expected: Vec<usize> = (0..cells)
+            .filter(|&k| predicted[k] >= self.options.support_min_predicted && textured[k])
+            .collect();
+        if expected.is_empty() {
+            return Ok(());
+        }
+        let held = expected.iter().filter(|&&k| supported[k]).count();
+        let share = held as f64 / expected.len() as f64;
+        if share < self.options.min_view_support {
+            return Err(format!(
+                "inliers in {held} of the {} image cells the map predicts ({:.2} < {:.2})",
+                expected.len(),
+                share,
+                self.options.min_view_support
+            ));
+        }
+        Ok(())
+    }
+
     /// The position's uncertainty against `max_position_std`.
     fn check_position(&self, e: &Estimate) -> std::result::Result<(), String> {
         // Position uncertainty: inliers on far walls fix the rotation but hardly the position,
@@ -520,6 +674,32 @@ impl Localizer {
             )),
             None => Err("position unconstrained (singular information)".into()),
         }
+    }
+
+    /// Landmarks seen by the `count` keyframes that view the pose's surroundings best: nearest
+    /// in centre (in units of the map's median depth) and in viewing direction (a keyframe
+    /// 0.3 m away looking 90° elsewhere shares less than one 0.5 m away looking the same way).
+    fn viewing_landmarks(&self, cam_from_map: &Pose, count: usize) -> Vec<u32> {
+        let map_from_cam = cam_from_map.inverse();
+        let c = map_from_cam.translation.vector;
+        let axis = map_from_cam.rotation * Vector3::z();
+        let mut order: Vec<(f64, usize)> = self
+            .keyframe_centres
+            .iter()
+            .zip(&self.keyframe_axes)
+            .enumerate()
+            .map(|(k, (x, a))| {
+                let d = (x - c).norm() / self.map_depth;
+                (d * d + (1.0 - a.dot(&axis)), k)
+            })
+            .collect();
+        order.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+        let set: BTreeSet<u32> = order
+            .iter()
+            .take(count)
+            .flat_map(|(_, k)| self.keyframe_landmarks[*k].iter().copied())
+            .collect();
+        set.into_iter().collect()
     }
 
     /// Landmarks seen by the `count` keyframes whose centres are nearest to the pose's centre.
@@ -662,7 +842,9 @@ impl Localizer {
             self.options.relocalization_interval.max(1),
         );
         let run = self.failed_run;
-        if run >= retries && !(run - retries).is_multiple_of(interval) {
+        let since = *self.lost_since.get_or_insert(t);
+        let eager = t - since < self.options.relocalization_eager_s;
+        if !eager && run >= retries && !(run - retries).is_multiple_of(interval) {
             self.failed_run += 1;
             return Ok(FrameLocalization::lost(
                 frame,
@@ -678,12 +860,18 @@ impl Localizer {
             Some(f) => f,
             None => self.orb.extract(image, Some(&self.mask), &self.camera)?,
         };
-        let relocalized = self.relocalize(frame, &feats);
+        let started = std::time::Instant::now();
+        let relocalized = self.relocalize(frame, &feats, None);
+        self.attempts += 1;
+        self.attempt_seconds += started.elapsed().as_secs_f64();
         self.failed_run = if relocalized.is_ok() {
             0
         } else {
             self.failed_run + 1
         };
+        if relocalized.is_ok() {
+            self.lost_since = None;
+        }
         match relocalized {
             Ok(e) => Ok(self.finish(
                 frame,
@@ -898,11 +1086,29 @@ impl Localizer {
             .collect()
     }
 
+    /// Relocalize one frame from scratch (no motion prior, no state change) and report every
+    /// candidate tried: the diagnostics behind docs/vision.md's relocalization figures.
+    pub fn trace_relocalization(
+        &mut self,
+        frame: u32,
+        image: &GrayImage,
+    ) -> Result<RelocalizationTrace> {
+        let features = self.orb.extract(image, Some(&self.mask), &self.camera)?;
+        let mut candidates = Vec::new();
+        let _ = self.relocalize(frame, &features, Some(&mut candidates));
+        Ok(RelocalizationTrace {
+            features,
+            candidates,
+        })
+    }
+
     /// Global relocalization by place recognition; `Err((reason, inliers))` when rejected.
+    /// Each candidate tried is appended to `trace` when given.
     fn relocalize(
         &self,
         frame: u32,
         feats: &FrameFeatures,
+        mut trace: Option<&mut Vec<CandidateTrace>>,
     ) -> std::result::Result<Estimate, (String, usize)> {
         if feats.keypoints.len() < self.options.min_inliers_relocalization {
             return Err((
@@ -923,7 +1129,7 @@ impl Localizer {
         let mut last_reason = String::new();
         let mut best_rejected = 0;
         let n_kf = self.keyframe_landmarks.len();
-        for (rank, &(_, k)) in candidates.iter().enumerate() {
+        for (rank, &(score, k)) in candidates.iter().enumerate() {
             let lo = k.saturating_sub(self.options.relocalization_neighbours);
             let hi = (k + self.options.relocalization_neighbours).min(n_kf - 1);
             let set: BTreeSet<u32> = (lo..=hi)
@@ -961,54 +1167,73 @@ impl Localizer {
                     }
                 })
                 .collect();
-            let salt = 16 + 2 * rank as u64;
-            let first = match self.estimate(&corr, &self.ransac(frame, salt, min_inliers)) {
+            let salt = 16 + 4 * rank as u64;
+            let hypothesis_min = self
+                .options
+                .relocalization_hypothesis_inliers
+                .clamp(4, min_inliers);
+            let first = match self.estimate(&corr, &self.ransac(frame, salt, hypothesis_min)) {
                 Ok(e) => e,
                 Err(why) => {
-                    if tracing::enabled!(tracing::Level::DEBUG) {
-                        let most = self
-                            .estimate(&corr, &self.ransac(frame, salt, 4))
-                            .map_or(0, |e| e.inliers.len());
-                        tracing::debug!(
-                            frame,
-                            keyframe = k,
-                            correspondences = corr.len(),
-                            most_inliers = most,
-                            %why,
-                            "relocalization candidate failed"
-                        );
+                    if let Some(t) = trace.as_deref_mut() {
+                        t.push(CandidateTrace {
+                            keyframe: k,
+                            score,
+                            matches: matches.iter().map(|m| (m.query, m.train as u32)).collect(),
+                            inliers: 0,
+                            cam_from_map: None,
+                            rejection: why.clone(),
+                        });
                     }
                     last_reason = format!("keyframe {k}: {why}");
                     continue;
                 }
             };
-            // Densify with guided matching over the candidate's landmarks.
+            // Densify with guided matching: first over the candidate window's landmarks, then
+            // over the keyframes that view the estimated pose's surroundings best (a view from
+            // elsewhere is often nearest to keyframes place recognition did not rank first).
             let first_inliers = first.inliers.len();
-            let guided = self.guided_matches(&first.cam_from_map, &local, feats, &grid);
-            let e = match self.estimate(&guided, &self.ransac(frame, salt + 1, min_inliers)) {
-                Ok(e) if e.inliers.len() >= first.inliers.len() => e,
-                _ => first,
-            };
-            // Densify again over the keyframes nearest to that pose: a view from elsewhere (the
-            // other wrist) is often nearest to keyframes place recognition did not rank first.
-            let near = self.nearby_landmarks(&e.cam_from_map, self.options.guided_keyframes);
-            let wide = self.guided_matches(&e.cam_from_map, &near, feats, &grid);
-            let e = match self.estimate(&wide, &self.ransac(frame, salt + 1, min_inliers)) {
-                Ok(w) if w.inliers.len() > e.inliers.len() => w,
-                _ => e,
-            };
+            let mut e = first;
+            for round in 0..self.options.relocalization_guided_rounds {
+                let landmarks = if round == 0 {
+                    local.clone()
+                } else {
+                    self.viewing_landmarks(&e.cam_from_map, self.options.guided_keyframes)
+                };
+                let guided = self.guided_matches(&e.cam_from_map, &landmarks, feats, &grid);
+                let ransac = self.ransac(frame, salt + 1 + round as u64, hypothesis_min);
+                match self.estimate(&guided, &ransac) {
+                    Ok(g) if g.inliers.len() > e.inliers.len() => e = g,
+                    _ => {
+                        if round > 0 {
+                            break;
+                        }
+                    }
+                }
+            }
             tracing::debug!(
                 frame,
                 keyframe = k,
                 matches = corr.len(),
                 hypothesis_inliers = first_inliers,
-                guided = guided.len(),
-                near_landmarks = near.len(),
-                wide = wide.len(),
                 inliers = e.inliers.len(),
+                candidates = e.candidates,
                 "relocalization candidate densified"
             );
-            match self.accept(&e, min_inliers) {
+            let verdict = self
+                .accept(&e, min_inliers)
+                .and_then(|()| self.check_view_support(&e, feats));
+            if let Some(t) = trace.as_deref_mut() {
+                t.push(CandidateTrace {
+                    keyframe: k,
+                    score,
+                    matches: matches.iter().map(|m| (m.query, m.train as u32)).collect(),
+                    inliers: e.inliers.len(),
+                    cam_from_map: Some(e.cam_from_map),
+                    rejection: verdict.clone().err().unwrap_or_default(),
+                });
+            }
+            match verdict {
                 Ok(()) => {
                     if best
                         .as_ref()

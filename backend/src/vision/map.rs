@@ -24,10 +24,12 @@ use crate::vision::place::{KeyframeDatabase, Vocabulary};
 
 /// The `format` tag of a map file.
 pub const MAP_FORMAT: &str = "kiwi-visual-map";
-/// The schema version this build writes (2: with the place-recognition vocabulary).
-pub const MAP_SCHEMA_VERSION: u32 = 2;
-/// The oldest schema this build still reads (1: no vocabulary; one is learned on load).
-pub const MAP_SCHEMA_OLDEST: u32 = 1;
+/// The schema version this build writes (3: descriptors computed on rectified patches around
+/// each keypoint's bearing, `OrbOptions::rectified`; 2 added the place-recognition vocabulary).
+pub const MAP_SCHEMA_VERSION: u32 = 3;
+/// The oldest schema this build reads: older maps hold descriptors of the raw fisheye image,
+/// which do not match this build's, and must be rebuilt.
+pub const MAP_SCHEMA_OLDEST: u32 = 3;
 /// Largest deviation of a unit vector's norm from one in a valid file.
 const UNIT_TOLERANCE: f64 = 1e-6;
 
@@ -200,8 +202,8 @@ pub struct VisualMap {
     pub keyframes: Vec<MapKeyframe>,
     /// Landmarks (indexed by [`MapFeature::landmark`]).
     pub landmarks: Vec<MapLandmark>,
-    /// Place-recognition vocabulary learned from the keyframes' descriptors (schema 2; absent in
-    /// schema 1 files, then learned on load).
+    /// Place-recognition vocabulary learned from the keyframes' descriptors (required; a map
+    /// built in memory without one learns it when its keyframe database is first built).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub vocabulary: Option<Vocabulary>,
 }
@@ -249,7 +251,7 @@ impl VisualMap {
     }
 
     /// The keyframe database for place recognition (learns a vocabulary first if the map has
-    /// none, as schema-1 maps do not).
+    /// none: a map assembled in memory).
     pub fn keyframe_database(&mut self) -> KeyframeDatabase {
         if self.vocabulary.is_none() {
             self.train_vocabulary();
@@ -277,12 +279,25 @@ impl VisualMap {
                 ),
             ));
         }
-        if !(MAP_SCHEMA_OLDEST..=MAP_SCHEMA_VERSION).contains(&self.schema_version) {
+        if self.schema_version < MAP_SCHEMA_OLDEST {
             return Err(map_err(
                 path,
                 format!(
-                    "field `schema_version`: this kiwi reads versions {MAP_SCHEMA_OLDEST} to \
-                     {MAP_SCHEMA_VERSION}, found {}; rebuild the map with this kiwi (`kiwi map`)",
+                    "field `schema_version`: {} is a map whose descriptors were computed on the \
+                     raw fisheye image; this kiwi describes features on rectified patches \
+                     (schema {MAP_SCHEMA_VERSION}) and cannot match them: rebuild the map with \
+                     `kiwi map`",
+                    self.schema_version
+                ),
+            ));
+        }
+        if self.schema_version > MAP_SCHEMA_VERSION {
+            return Err(map_err(
+                path,
+                format!(
+                    "field `schema_version`: this kiwi reads version {MAP_SCHEMA_VERSION}, found \
+                     {} (written by a newer kiwi); rebuild the map with this kiwi (`kiwi map`) \
+                     or update kiwi",
                     self.schema_version
                 ),
             ));
@@ -290,12 +305,10 @@ impl VisualMap {
         if let Some(v) = &self.vocabulary {
             v.check()
                 .map_err(|e| map_err(path, format!("field `vocabulary`: {e}")))?;
-        } else if self.schema_version >= 2 {
+        } else {
             return Err(map_err(
                 path,
-                "field `vocabulary`: missing (required from schema 2); rebuild the map with \
-                 `kiwi map`"
-                    .into(),
+                "field `vocabulary`: missing; rebuild the map with `kiwi map`".into(),
             ));
         }
         self.camera

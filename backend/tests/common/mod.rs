@@ -1,6 +1,8 @@
 //! Helpers shared by the vision tests and bench: simulator sessions and truth pose files.
 #![allow(dead_code, clippy::unwrap_used)]
 
+pub mod reloc;
+
 use std::path::{Path, PathBuf};
 
 use kiwi_backend::vision::align::Sim3;

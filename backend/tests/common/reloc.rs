@@ -1,0 +1,344 @@
+//! Relocalization in rooms and along paths the mapping did not take: simulator sessions of a
+//! room kind (a mapping scan and a later query path), the map's alignment to the truth, and the
+//! diagnosis of relocalization attempts against the truth (are the retrieved keyframes the
+//! right ones; how many correct 2D-3D matches exist and how many matching finds).
+#![allow(dead_code, clippy::unwrap_used)]
+
+use std::path::{Path, PathBuf};
+
+use kiwi_backend::vision::align::{Sim3, umeyama};
+use kiwi_backend::vision::episode::LensStream;
+use kiwi_backend::vision::localize::{Localizer, LocalizerOptions, RelocalizationTrace};
+use kiwi_backend::vision::map::VisualMap;
+use kiwi_core::camera::CameraModel;
+use kiwi_core::geometry::Pose;
+use kiwi_fixtures::scenario::Scenario;
+use kiwi_fixtures::scene::{RoomKind, Scene, SceneOptions};
+use kiwi_fixtures::session::{SessionOptions, write_session};
+use nalgebra::{Point3, Quaternion, Translation3, UnitQuaternion, Vector3};
+
+/// One simulated episode of a room: which scenario, how long, at what rate and brightness.
+#[derive(Debug, Clone, Copy)]
+pub struct Take {
+    /// Motion.
+    pub scenario: Scenario,
+    /// Length (s).
+    pub seconds: f64,
+    /// Frame rate (Hz).
+    pub fps: f64,
+    /// Lighting gain.
+    pub light_gain: f32,
+}
+
+/// Write a one-episode session of `room` (seed `seed`, `resolution` px, one lens `lens` as
+/// `camera/lens`) into `root/name` unless it is there already; returns the episode folder.
+pub fn room_session(
+    root: &Path,
+    name: &str,
+    room: RoomKind,
+    seed: u64,
+    resolution: u32,
+    lens: &str,
+    take: Take,
+) -> PathBuf {
+    let out = root.join(name);
+    let episode = out.join("episodes").join("ep000");
+    if out.join("session.toml").is_file() {
+        return episode;
+    }
+    let mut o = SessionOptions::new(&out);
+    o.seed = seed;
+    o.scenario = take.scenario;
+    o.duration_s = take.seconds;
+    o.resolution = resolution;
+    o.rate_hz = take.fps;
+    o.head = false;
+    o.scene = SceneOptions {
+        light_gain: take.light_gain,
+        ..SceneOptions::room(room)
+    };
+    o.only_lenses = vec![lens.to_string()];
+    write_session(&o).unwrap();
+    episode
+}
+
+/// `(t, world_from_cam)` rows of a truth pose file.
+pub fn truth_poses(episode: &Path, camera: &str, lens: &str) -> Vec<(f64, Pose)> {
+    let text =
+        std::fs::read_to_string(episode.join(format!("truth/{camera}/{lens}_poses.csv"))).unwrap();
+    text.lines()
+        .skip(1)
+        .map(|l| {
+            let v: Vec<f64> = l.split(',').map(|x| x.parse().unwrap()).collect();
+            let q = UnitQuaternion::from_quaternion(Quaternion::new(v[8], v[5], v[6], v[7]));
+            (
+                v[0],
+                Pose::from_parts(Translation3::new(v[2], v[3], v[4]), q),
+            )
+        })
+        .collect()
+}
+
+/// The truth row nearest in time to `t`.
+pub fn pose_at(rows: &[(f64, Pose)], t: f64) -> Pose {
+    rows.iter()
+        .min_by(|a, b| (a.0 - t).abs().total_cmp(&(b.0 - t).abs()))
+        .map(|r| r.1)
+        .unwrap()
+}
+
+/// The map's Sim(3) to the world, from its keyframe centres and the mapping truth.
+pub struct Alignment {
+    /// `world = s R map + t`.
+    pub sim: Sim3,
+}
+
+impl Alignment {
+    /// Align `map`'s keyframes to the mapping episode's truth.
+    pub fn new(map: &VisualMap, mapping_truth: &[(f64, Pose)]) -> Self {
+        let (est, tru): (Vec<Vector3<f64>>, Vec<Vector3<f64>>) = map
+            .keyframes
+            .iter()
+            .map(|k| {
+                let c = k
+                    .cam_from_map
+                    .to_pose()
+                    .unwrap()
+                    .inverse()
+                    .translation
+                    .vector;
+                (c, pose_at(mapping_truth, k.t).translation.vector)
+            })
+            .unzip();
+        Self {
+            sim: umeyama(&est, &tru, true).unwrap(),
+        }
+    }
+
+    /// A map point in the world.
+    pub fn world_point(&self, p: &Vector3<f64>) -> Vector3<f64> {
+        self.sim.transform_point(p)
+    }
+
+    /// A world camera pose as `cam_from_map` (map units).
+    pub fn cam_from_map(&self, world_from_cam: &Pose) -> Pose {
+        let r = self.sim.rotation.inverse() * world_from_cam.rotation;
+        let c = self.sim.rotation.inverse()
+            * (world_from_cam.translation.vector - self.sim.translation)
+            / self.sim.scale;
+        Pose::from_parts(Translation3::from(c), r).inverse()
+    }
+
+    /// A map pose `map_from_cam` in the world.
+    pub fn world_from_cam(&self, map_from_cam: &Pose) -> Pose {
+        Pose::from_parts(
+            Translation3::from(self.world_point(&map_from_cam.translation.vector)),
+            self.sim.rotation * map_from_cam.rotation,
+        )
+    }
+}
+
+/// Largest distance (px) between a query keypoint and a landmark's true projection for the pair
+/// to count as a correct 2D-3D match (map error and keypoint noise at 320-960 px).
+pub const CORRECT_MATCH_PX: f64 = 3.0;
+
+/// A landmark is visible from a true pose when the room's first surface along the ray to it is
+/// no nearer than this fraction of its distance (map error: a few mm to cm).
+const VISIBLE_DEPTH_FRACTION: f64 = 0.97;
+
+/// What one relocalization attempt saw, measured against the truth.
+#[derive(Debug, Clone)]
+pub struct AttemptDiagnosis {
+    /// Frame index.
+    pub frame: usize,
+    /// Query keypoints.
+    pub keypoints: usize,
+    /// Query keypoints with a visible map landmark projecting within [`CORRECT_MATCH_PX`]
+    /// under the true pose: the correct 2D-3D matches that exist in the whole map.
+    pub correct_possible: usize,
+    /// The keyframe sharing the most visible landmarks with the query (the right candidate),
+    /// its distance (m) and viewing angle (deg) to the query, and that count.
+    pub best_keyframe: (usize, f64, f64, usize),
+    /// Per candidate tried: keyframe, distance (m), angle (deg), its rank by shared visible
+    /// landmarks (0 = the best), matches found, correct among them, correct possible within its
+    /// window's landmarks, inliers, estimate error (m, if any), rejection.
+    pub candidates: Vec<CandidateDiagnosis>,
+}
+
+/// One candidate of an attempt, against the truth.
+#[derive(Debug, Clone)]
+pub struct CandidateDiagnosis {
+    /// Keyframe.
+    pub keyframe: usize,
+    /// Distance of its centre to the query's true centre (m).
+    pub distance_m: f64,
+    /// Angle between its optical axis and the query's (deg).
+    pub angle_deg: f64,
+    /// Rank among keyframes by shared visible landmarks (0 = most).
+    pub overlap_rank: usize,
+    /// Descriptor matches.
+    pub matches: usize,
+    /// Matches whose landmark projects within [`CORRECT_MATCH_PX`] of the keypoint.
+    pub correct: usize,
+    /// Inliers of its estimate.
+    pub inliers: usize,
+    /// Position error of its estimate (m), if any.
+    pub error_m: Option<f64>,
+    /// Empty when accepted.
+    pub rejection: String,
+}
+
+/// Diagnose a relocalization attempt on `frame` of `stream` against the truth.
+pub fn diagnose_attempt(
+    map: &VisualMap,
+    stream: &LensStream,
+    alignment: &Alignment,
+    query_truth: &[(f64, Pose)],
+    scene: &Scene,
+    frame: usize,
+    options: &LocalizerOptions,
+) -> AttemptDiagnosis {
+    let mut localizer = Localizer::new(
+        map,
+        &stream.lens,
+        stream.camera.clone(),
+        stream.mask.clone(),
+        *options,
+    )
+    .unwrap();
+    let image = stream.load(frame).unwrap();
+    let trace: RelocalizationTrace = localizer
+        .trace_relocalization(frame as u32, &image)
+        .unwrap();
+    let world_from_cam = pose_at(query_truth, stream.frames[frame].t);
+    let cam_from_map = alignment.cam_from_map(&world_from_cam);
+    let camera = &stream.camera;
+    // Visible landmarks and their true projections.
+    let origin = world_from_cam.translation.vector;
+    let projections: Vec<Option<nalgebra::Point2<f64>>> = map
+        .landmarks
+        .iter()
+        .map(|l| {
+            let p = Vector3::from(l.position);
+            let pc = cam_from_map * Point3::from(p);
+            let px = camera.project(&pc.coords)?;
+            if !camera.in_image(&px) || pc.coords.normalize().z < (0.5 * camera.valid_fov()).cos() {
+                return None;
+            }
+            let w = alignment.world_point(&p);
+            let d = w - origin;
+            let dist = d.norm();
+            let dir = d / dist;
+            let hit = scene.intersect(
+                [origin.x as f32, origin.y as f32, origin.z as f32],
+                [dir.x as f32, dir.y as f32, dir.z as f32],
+            );
+            (f64::from(hit.distance) >= VISIBLE_DEPTH_FRACTION * dist).then_some(px)
+        })
+        .collect();
+    let kps = &trace.features.keypoints;
+    let correct_for = |kp: usize, l: u32| -> bool {
+        projections[l as usize].is_some_and(|p| (p - kps[kp].pixel).norm() <= CORRECT_MATCH_PX)
+    };
+    // Correct matches possible: keypoints with a visible landmark projection within reach.
+    let mut correct_possible = 0;
+    for kp in kps {
+        if projections
+            .iter()
+            .flatten()
+            .any(|p| (p - kp.pixel).norm() <= CORRECT_MATCH_PX)
+        {
+            correct_possible += 1;
+        }
+    }
+    // Keyframes by shared visible landmarks.
+    let mut overlap: Vec<(usize, usize)> = map
+        .keyframes
+        .iter()
+        .enumerate()
+        .map(|(k, kf)| {
+            let mut ls: Vec<u32> = kf.features.iter().filter_map(|f| f.landmark).collect();
+            ls.sort_unstable();
+            ls.dedup();
+            (
+                ls.iter()
+                    .filter(|&&l| projections[l as usize].is_some())
+                    .count(),
+                k,
+            )
+        })
+        .collect();
+    overlap.sort_by(|a, b| b.0.cmp(&a.0).then(a.1.cmp(&b.1)));
+    let rank_of = |k: usize| overlap.iter().position(|o| o.1 == k).unwrap_or(usize::MAX);
+    let geometry = |k: usize| -> (f64, f64) {
+        let kf =
+            alignment.world_from_cam(&map.keyframes[k].cam_from_map.to_pose().unwrap().inverse());
+        let d = (kf.translation.vector - origin).norm();
+        let a = (kf.rotation * Vector3::z())
+            .angle(&(world_from_cam.rotation * Vector3::z()))
+            .to_degrees();
+        (d, a)
+    };
+    let best = overlap[0];
+    let (bd, ba) = geometry(best.1);
+    let candidates = trace
+        .candidates
+        .iter()
+        .map(|c| {
+            let (d, a) = geometry(c.keyframe);
+            CandidateDiagnosis {
+                keyframe: c.keyframe,
+                distance_m: d,
+                angle_deg: a,
+                overlap_rank: rank_of(c.keyframe),
+                matches: c.matches.len(),
+                correct: c
+                    .matches
+                    .iter()
+                    .filter(|(q, l)| correct_for(*q, *l))
+                    .count(),
+                inliers: c.inliers,
+                error_m: c.cam_from_map.map(|p| {
+                    (alignment.world_from_cam(&p.inverse()).translation.vector - origin).norm()
+                }),
+                rejection: c.rejection.clone(),
+            }
+        })
+        .collect();
+    AttemptDiagnosis {
+        frame,
+        keypoints: kps.len(),
+        correct_possible,
+        best_keyframe: (best.1, bd, ba, best.0),
+        candidates,
+    }
+}
+
+/// One line per attempt.
+pub fn describe_attempt(d: &AttemptDiagnosis) -> String {
+    let mut s = format!(
+        "frame {}: {} keypoints, {} correct matches exist; best keyframe {} ({:.2} m, {:.0}°, {} shared)",
+        d.frame,
+        d.keypoints,
+        d.correct_possible,
+        d.best_keyframe.0,
+        d.best_keyframe.1,
+        d.best_keyframe.2,
+        d.best_keyframe.3
+    );
+    for c in &d.candidates {
+        s.push_str(&format!(
+            "\n    kf {} ({:.2} m, {:.0}°, overlap rank {}): {} matches, {} correct, {} inliers, error {}, {}",
+            c.keyframe,
+            c.distance_m,
+            c.angle_deg,
+            c.overlap_rank,
+            c.matches,
+            c.correct,
+            c.inliers,
+            c.error_m.map_or("-".into(), |e| format!("{e:.3} m")),
+            if c.rejection.is_empty() { "accepted" } else { &c.rejection }
+        ));
+    }
+    s
+}

@@ -1,0 +1,255 @@
+//! `kiwi run` as a command: a run killed during localization resumes and ends byte-identical to
+//! an uninterrupted run (with another thread count), `kiwi status` says where stages stand, and
+//! a map episode that cannot be mapped gives every episode an `unusable` verdict naming the
+//! stream, with exit status 2.
+
+#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::{Duration, Instant};
+
+use kiwi_fixtures::scenario::Scenario;
+use kiwi_fixtures::session::{Cover, SessionOptions, write_session};
+
+const KIWI: &str = env!("CARGO_BIN_EXE_kiwi");
+/// Longest the killed run may take to reach localization before the test gives up.
+const REACH_LOCALIZE: Duration = Duration::from_secs(600);
+
+fn small_session(dir: &Path, covers: Vec<Cover>) -> PathBuf {
+    let mut o = SessionOptions::new(dir);
+    o.seed = 5;
+    o.resolution = 320;
+    o.rate_hz = 29.97;
+    o.episodes = 2;
+    o.scenario = Scenario::Survey;
+    o.episode_scenarios = vec![Scenario::Survey, Scenario::Tabletop];
+    o.episode_durations = vec![10.0, 2.0];
+    o.duration_s = 10.0;
+    o.head = false;
+    o.covers = covers;
+    write_session(&o).unwrap().session_toml
+}
+
+/// Every file under `dir` (relative path → bytes), manifests left out (they hold wall times).
+fn files(dir: &Path) -> Vec<(String, Vec<u8>)> {
+    fn walk(base: &Path, dir: &Path, out: &mut Vec<(String, Vec<u8>)>) {
+        let Ok(entries) = std::fs::read_dir(dir) else {
+            return;
+        };
+        for e in entries.flatten() {
+            let p = e.path();
+            if p.is_dir() {
+                walk(base, &p, out);
+            } else if p.file_name().is_some_and(|n| n != "manifest.json") {
+                let rel = p.strip_prefix(base).unwrap().to_string_lossy().into_owned();
+                out.push((rel, std::fs::read(&p).unwrap()));
+            }
+        }
+    }
+    let mut out = Vec::new();
+    walk(dir, dir, &mut out);
+    out.sort_by(|a, b| a.0.cmp(&b.0));
+    out
+}
+
+/// What the pipeline wrote: every stage folder and every episode's `out/`.
+fn results(session: &Path) -> Vec<(String, Vec<u8>)> {
+    let mut all: Vec<(String, Vec<u8>)> = files(&session.join("work"))
+        .into_iter()
+        .map(|(p, b)| (format!("work/{p}"), b))
+        .collect();
+    for ep in ["ep000", "ep001"] {
+        for sub in ["work", "out"] {
+            let dir = session.join("episodes").join(ep).join(sub);
+            all.extend(
+                files(&dir)
+                    .into_iter()
+                    .map(|(p, b)| (format!("{ep}/{sub}/{p}"), b)),
+            );
+        }
+    }
+    all
+}
+
+fn copy_inputs(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for e in std::fs::read_dir(from).unwrap().flatten() {
+        let (src, dst) = (e.path(), to.join(e.file_name()));
+        if src.is_dir() {
+            copy_inputs(&src, &dst);
+        } else {
+            std::fs::hard_link(&src, &dst).unwrap();
+        }
+    }
+}
+
+fn localization_started(session: &Path) -> bool {
+    ["ep000", "ep001"].iter().any(|ep| {
+        std::fs::read_dir(session.join("episodes").join(ep).join("work")).is_ok_and(|d| {
+            d.flatten()
+                .any(|e| e.file_name().to_string_lossy().starts_with(".tmp-localize"))
+        })
+    })
+}
+
+#[test]
+fn a_killed_run_resumes_to_byte_identical_results() {
+    let tmp = tempfile::tempdir().unwrap();
+    let a = small_session(&tmp.path().join("a"), Vec::new());
+    let b_dir = tmp.path().join("b");
+    copy_inputs(a.parent().unwrap(), &b_dir);
+    let b = b_dir.join("session.toml");
+
+    let out = Command::new(KIWI)
+        .args(["run", "--threads", "1", "--json", "--session"])
+        .arg(&a)
+        .output()
+        .unwrap();
+    let report: serde_json::Value = serde_json::from_slice(&out.stdout)
+        .unwrap_or_else(|e| panic!("{e}: {}", String::from_utf8_lossy(&out.stderr)));
+    println!("uninterrupted: {}", report["counts"]);
+
+    // Kill a second run (another thread count) as soon as it localizes.
+    let mut child = Command::new(KIWI)
+        .args(["run", "--threads", "2", "--json", "--session"])
+        .arg(&b)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let start = Instant::now();
+    while !localization_started(&b_dir) {
+        assert!(
+            start.elapsed() < REACH_LOCALIZE,
+            "never reached localization"
+        );
+        if child.try_wait().unwrap().is_some() {
+            panic!("the run ended before localization");
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    child.kill().unwrap();
+    child.wait().unwrap();
+    let status = Command::new(KIWI)
+        .args(["status", "--session"])
+        .arg(&b)
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&status.stdout).into_owned();
+    println!("status after the kill:\n{text}");
+    assert!(text.contains("map-rear") && text.contains("current"));
+    assert!(text.contains("not run"));
+
+    let resumed = Command::new(KIWI)
+        .args(["run", "--threads", "2", "--json", "--session"])
+        .arg(&b)
+        .output()
+        .unwrap();
+    let report: serde_json::Value = serde_json::from_slice(&resumed.stdout).unwrap();
+    println!("resumed: {}", report["counts"]);
+    // The finished maps were not built again.
+    let map_stage = report["stages"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|s| s["stage"] == "session/map-rear")
+        .unwrap();
+    assert_eq!(map_stage["outcome"], "current", "{map_stage}");
+    let (ra, rb) = (results(a.parent().unwrap()), results(&b_dir));
+    let names = |r: &[(String, Vec<u8>)]| r.iter().map(|(n, _)| n.clone()).collect::<Vec<_>>();
+    assert_eq!(names(&ra), names(&rb));
+    for ((name, x), (_, y)) in ra.iter().zip(&rb) {
+        assert!(
+            x == y,
+            "{name} differs between the uninterrupted and the resumed run"
+        );
+    }
+    assert!(
+        !b_dir
+            .join("work")
+            .read_dir()
+            .unwrap()
+            .flatten()
+            .any(|e| { e.file_name().to_string_lossy().starts_with(".tmp-") })
+    );
+}
+
+#[test]
+fn an_unmappable_map_episode_makes_every_episode_unusable_and_says_why() {
+    let tmp = tempfile::tempdir().unwrap();
+    // The mapping wrist's rear lens is covered for the whole map episode.
+    let cover = Cover::parse("0:left:rear:0:10").unwrap();
+    let mut o = SessionOptions::new(tmp.path().join("s"));
+    o.seed = 9;
+    o.resolution = 160;
+    o.rate_hz = 10.0;
+    o.episodes = 2;
+    o.duration_s = 3.0;
+    o.head = false;
+    o.covers = vec![Cover {
+        duration_s: 3.0,
+        ..cover
+    }];
+    let toml = write_session(&o).unwrap().session_toml;
+    let out = Command::new(KIWI)
+        .args(["run", "--json", "--session"])
+        .arg(&toml)
+        .output()
+        .unwrap();
+    assert_eq!(
+        out.status.code(),
+        Some(2),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    for e in report["episodes"].as_array().unwrap() {
+        assert_eq!(e["verdict"], "unusable");
+        let reasons = e["reasons"].to_string();
+        assert!(
+            reasons.contains("map-rear") && reasons.contains("left/rear"),
+            "{reasons}"
+        );
+    }
+    // The text summary counts them.
+    let out = Command::new(KIWI)
+        .args(["run", "--session"])
+        .arg(&toml)
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(text.contains("2 unusable"), "{text}");
+}
+
+#[test]
+fn run_refuses_unknown_stages_and_episodes_naming_them() {
+    let tmp = tempfile::tempdir().unwrap();
+    let mut o = SessionOptions::new(tmp.path().join("s"));
+    o.resolution = 64;
+    o.rate_hz = 2.0;
+    o.duration_s = 2.0;
+    o.head = false;
+    let toml = write_session(&o).unwrap().session_toml;
+    for (args, expect) in [
+        (vec!["--from", "mapping"], "--from mapping: unknown stage"),
+        (vec!["--force", "fuse"], "--force fuse: unknown stage"),
+        (vec!["--episodes", "ep009"], "no episode `ep009`"),
+    ] {
+        let out = Command::new(KIWI)
+            .args(["run", "--session"])
+            .arg(&toml)
+            .args(&args)
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1));
+        assert!(err.contains(expect), "{err}");
+    }
+    let out = Command::new(KIWI)
+        .args(["run", "--session"])
+        .arg(toml.parent().unwrap())
+        .output()
+        .unwrap();
+    assert!(String::from_utf8_lossy(&out.stderr).contains("expected the session's session.toml"));
+}

@@ -1,0 +1,533 @@
+//! `kiwi run` end to end on a simulated session recorded with two units certified from their
+//! own simulated captures (the pipeline reads the certified sets, never the simulator's truth):
+//! accuracy against the truth, support, sync, gripper, blind stretches, the map-builder swap,
+//! stale-stage detection and bad input.
+//!
+//! Errors are measured in the truth world frame after one rigid alignment (SE(3), no scale) of
+//! the scene frame, fitted on the mapping episode's left-wrist front-camera trajectory and held
+//! fixed for both wrists and every episode.
+
+#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
+
+mod common;
+
+use std::path::{Path, PathBuf};
+
+use common::{
+    BLIND, DURATIONS, OutRow, copy_tree, fit_world_from_scene, median_p95, out_rows, read_csv,
+    shared_session, truth_at, truth_frames, truth_point_at_session,
+};
+use kiwi_backend::outputs::read_quality;
+use kiwi_backend::pipeline::runner::{NoProgress, Outcome};
+use kiwi_backend::pipeline::{RunOptions, SessionContext, run};
+use kiwi_backend::quality::Verdict;
+use kiwi_core::geometry::Pose;
+use kiwi_core::tool::ToolDefinition;
+
+/// Tool-tip position error limits at 480 px (m): median and 95th percentile.
+const TIP_MEDIAN_M: f64 = 0.01;
+const TIP_P95_M: f64 = 0.02;
+/// Tool-tip rotation median limit (deg).
+const TIP_ROTATION_MEDIAN_DEG: f64 = 0.5;
+/// No frame of an episode marked usable may be further off than this (m).
+const WORST_M: f64 = 0.05;
+/// Inter-hand distance error median (m).
+const INTER_HAND_MEDIAN_M: f64 = 0.005;
+/// Supported fraction per wrist.
+const SUPPORT_MIN: f64 = 0.999;
+/// Sync offsets used, against the truth (s).
+const SYNC_TOLERANCE_S: f64 = 1e-3;
+/// Gripper opening RMSE: chopstick (rad) and parallel jaw (m).
+const CHOPSTICK_RMSE_RAD: f64 = 0.5 * std::f64::consts::PI / 180.0;
+const PARALLEL_RMSE_M: f64 = 0.001;
+/// Frames of a covered front lens bridged by rear observations and the IMU stay within this (m).
+const BRIDGED_M: f64 = 0.02;
+/// The map-builder swap changes trajectories by less than this (m).
+const SWAP_M: f64 = 0.005;
+
+/// Run the whole pipeline once on a copy of the shared session (shared by the tests of this
+/// machine like the session itself).
+fn shared_run() -> PathBuf {
+    let toml = shared_session();
+    let root = toml.parent().unwrap().parent().unwrap().to_path_buf();
+    let run_dir = root.join("run");
+    let lock = std::fs::File::create(root.join(".run-lock")).unwrap();
+    lock.lock().unwrap();
+    if !root.join("ran").is_file() {
+        let _ = std::fs::remove_dir_all(&run_dir);
+        copy_tree(toml.parent().unwrap(), &run_dir);
+        let ctx = SessionContext::load(&run_dir.join("session.toml")).unwrap();
+        let started = std::time::Instant::now();
+        let report = run(&ctx, &RunOptions::default(), &NoProgress).unwrap();
+        println!(
+            "pipeline: {:.1} s, {:?}",
+            started.elapsed().as_secs_f64(),
+            report.counts
+        );
+        for s in &report.stages {
+            if let Outcome::Failed { reason } = &s.outcome {
+                println!("{} failed: {reason}", s.stage);
+            }
+        }
+        std::fs::write(root.join("ran"), b"ok").unwrap();
+    }
+    lock.unlock().unwrap();
+    run_dir
+}
+
+fn cam_from_tip(kind: &str) -> Pose {
+    let kind = match kind {
+        "left" => kiwi_core::layout::ToolKind::Chopstick,
+        _ => kiwi_core::layout::ToolKind::ParallelJaw,
+    };
+    ToolDefinition::builtin(kind).unwrap().cam_from_tip()
+}
+
+struct Errors {
+    position: Vec<f64>,
+    rotation_deg: Vec<f64>,
+    frames: usize,
+}
+
+/// Tool-tip errors of a wrist in an episode, optionally only for frames whose session time is
+/// inside `window` (s into the episode).
+fn tip_errors(
+    session: &Path,
+    episode: &str,
+    camera: &str,
+    world_from_scene: &Pose,
+    window: Option<(f64, f64)>,
+) -> Errors {
+    let rows = out_rows(session, episode, camera);
+    let truth = truth_frames(session, episode, camera, "front");
+    let by: std::collections::BTreeMap<u64, &common::TruthFrame> = Default::default();
+    let tip = cam_from_tip(camera);
+    let mut e = Errors {
+        position: Vec::new(),
+        rotation_deg: Vec::new(),
+        frames: 0,
+    };
+    for r in &rows {
+        let Some(f) = truth_at(&by, &truth, r.t_camera) else {
+            continue;
+        };
+        if let Some((a, b)) = window
+            && !(a..b).contains(&f.t_session)
+        {
+            continue;
+        }
+        e.frames += 1;
+        let est = world_from_scene * r.tip;
+        let tru = f.world_from_cam * tip;
+        e.position
+            .push((est.translation.vector - tru.translation.vector).norm());
+        e.rotation_deg
+            .push(est.rotation.angle_to(&tru.rotation).to_degrees());
+    }
+    e
+}
+
+fn alignment(session: &Path) -> Pose {
+    let map_ep = "ep000";
+    fit_world_from_scene(
+        &out_rows(session, map_ep, "left"),
+        &truth_frames(session, map_ep, "left", "front"),
+    )
+}
+
+#[test]
+fn run_reconstructs_tabletop_and_walk_within_tolerance() {
+    let session = shared_run();
+    let world_from_scene = alignment(&session);
+    let mut failures = Vec::new();
+    for (episode, what) in [("ep001", "tabletop"), ("ep002", "walk")] {
+        let q = read_quality(
+            &session
+                .join("episodes")
+                .join(episode)
+                .join("out/quality.json"),
+        )
+        .unwrap();
+        println!("{episode} ({what}): {} {:?}", q.verdict.as_str(), q.reasons);
+        if q.verdict != Verdict::Usable {
+            failures.push(format!(
+                "{episode}: verdict {:?}: {:?}",
+                q.verdict, q.reasons
+            ));
+        }
+        for camera in ["left", "right"] {
+            let w = &q.wrists[camera];
+            let e = tip_errors(&session, episode, camera, &world_from_scene, None);
+            let (pm, p95) = median_p95(e.position.clone());
+            let (rm, _) = median_p95(e.rotation_deg.clone());
+            let worst = e.position.iter().copied().fold(0.0, f64::max);
+            println!(
+                "{episode} {camera}: {} frames, tip median {:.1} mm, p95 {:.1} mm, worst {:.1} mm, \
+                 rotation median {rm:.3}°, supported {:.4}",
+                e.frames,
+                pm * 1e3,
+                p95 * 1e3,
+                worst * 1e3,
+                w.supported_fraction
+            );
+            if pm > TIP_MEDIAN_M || p95 > TIP_P95_M || rm > TIP_ROTATION_MEDIAN_DEG {
+                failures.push(format!(
+                    "{episode} {camera}: median {pm}, p95 {p95}, rot {rm}"
+                ));
+            }
+            if q.verdict == Verdict::Usable && worst > WORST_M {
+                failures.push(format!(
+                    "{episode} {camera}: a frame {worst} m off in a usable episode"
+                ));
+            }
+            if w.supported_fraction < SUPPORT_MIN {
+                failures.push(format!(
+                    "{episode} {camera}: supported {}",
+                    w.supported_fraction
+                ));
+            }
+        }
+        // Inter-hand distance at the left frames' session times.
+        let left = out_rows(&session, episode, "left");
+        let right = out_rows(&session, episode, "right");
+        let lt = truth_frames(&session, episode, "left", "front");
+        let rt = truth_frames(&session, episode, "right", "front");
+        let mut d = Vec::new();
+        for l in &left {
+            let (Some(ts), Some(f)) = (l.t_session, truth_at(&Default::default(), &lt, l.t_camera))
+            else {
+                continue;
+            };
+            let Some(r_est) = interpolate_tip(&right, ts) else {
+                continue;
+            };
+            let Some(r_true) = truth_point_at_session(&rt, &cam_from_tip("right"), f.t_session)
+            else {
+                continue;
+            };
+            let l_true = (f.world_from_cam * cam_from_tip("left")).translation.vector;
+            let est = (l.tip.translation.vector - r_est).norm();
+            let tru = (l_true - r_true).norm();
+            d.push((est - tru).abs());
+        }
+        let (dm, _) = median_p95(d);
+        println!(
+            "{episode}: inter-hand distance error median {:.2} mm",
+            dm * 1e3
+        );
+        if dm > INTER_HAND_MEDIAN_M {
+            failures.push(format!("{episode}: inter-hand median {dm}"));
+        }
+        // Gripper openings against the truth.
+        for (camera, limit) in [("left", CHOPSTICK_RMSE_RAD), ("right", PARALLEL_RMSE_M)] {
+            let truth = read_csv(
+                &session
+                    .join("episodes")
+                    .join(episode)
+                    .join("truth")
+                    .join(camera)
+                    .join("gripper.csv"),
+            );
+            let rows = out_rows(&session, episode, camera);
+            let mut sq = Vec::new();
+            for t in &truth {
+                let tc: f64 = t["t"].parse().unwrap();
+                let v: f64 = t["opening"].parse().unwrap();
+                if let Some(o) = rows
+                    .iter()
+                    .find(|r| (r.t_camera - tc).abs() < 1e-5)
+                    .and_then(|r| r.opening)
+                {
+                    sq.push((o - v).powi(2));
+                }
+            }
+            let rmse = (sq.iter().sum::<f64>() / sq.len().max(1) as f64).sqrt();
+            println!(
+                "{episode} {camera}: gripper RMSE {rmse:.5} over {} frames",
+                sq.len()
+            );
+            if sq.is_empty() || rmse > limit {
+                failures.push(format!("{episode} {camera}: gripper RMSE {rmse}"));
+            }
+        }
+    }
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
+}
+
+fn interpolate_tip(rows: &[OutRow], t: f64) -> Option<nalgebra::Vector3<f64>> {
+    let k = rows.partition_point(|r| r.t_session.unwrap_or(f64::NEG_INFINITY) < t);
+    let (a, b) = (rows.get(k.checked_sub(1)?)?, rows.get(k)?);
+    let (ta, tb) = (a.t_session?, b.t_session?);
+    let s = (t - ta) / (tb - ta);
+    let (pa, pb) = (a.tip.translation.vector, b.tip.translation.vector);
+    Some(pa + (pb - pa) * s)
+}
+
+#[test]
+fn sync_offsets_used_are_within_a_millisecond_of_truth() {
+    let session = shared_run();
+    for episode in ["ep000", "ep001", "ep002", "ep003"] {
+        let q = read_quality(
+            &session
+                .join("episodes")
+                .join(episode)
+                .join("out/quality.json"),
+        )
+        .unwrap();
+        let sync = q.sync.as_ref().expect("sync result");
+        let truth: serde_json::Value = serde_json::from_str(
+            &std::fs::read_to_string(
+                session
+                    .join("episodes")
+                    .join(episode)
+                    .join("truth/clocks.json"),
+            )
+            .unwrap(),
+        )
+        .unwrap();
+        let clock = |name: &str| {
+            let c = truth
+                .as_array()
+                .unwrap()
+                .iter()
+                .find(|c| c["camera"] == name)
+                .unwrap();
+            let m = &c["microphone"];
+            let drift = m["drift_ppm"].as_f64().unwrap() * 1e-6;
+            let offset = m["offset_s"].as_f64().unwrap()
+                + m["video_to_device_s"].as_f64().unwrap() * (1.0 + drift);
+            (offset, drift, m["propagation_delay_s"].as_f64().unwrap())
+        };
+        let (o0, d0, p0) = clock(&sync.cameras[0].name);
+        for cam in &sync.cameras[1..] {
+            let (o, _, p) = clock(&cam.name);
+            let truth_offset = (o - o0) / (1.0 + d0) - (p - p0);
+            println!(
+                "{episode} {}: offset {:.6} s, truth {truth_offset:.6} s",
+                cam.name, cam.offset_s
+            );
+            assert!(
+                (cam.offset_s - truth_offset).abs() < SYNC_TOLERANCE_S,
+                "{episode} {}",
+                cam.name
+            );
+        }
+    }
+}
+
+#[test]
+fn blind_stretches_are_bridged_or_marked_imu_only() {
+    let session = shared_run();
+    let world_from_scene = alignment(&session);
+    let episode = "ep003";
+    // The session clock of this episode starts at 0 like the others (`t_session` of the truth).
+    let window = (BLIND.0 + 0.05, BLIND.0 + BLIND.1 - 0.05);
+    // Left: front covered, rear tracking: bridged by rear observations and the IMU.
+    let rows = out_rows(&session, episode, "left");
+    let truth = truth_frames(&session, episode, "left", "front");
+    let covered: Vec<&OutRow> = rows
+        .iter()
+        .filter(|r| {
+            truth_at(&Default::default(), &truth, r.t_camera)
+                .is_some_and(|f| (window.0..window.1).contains(&f.t_session))
+        })
+        .collect();
+    assert!(covered.len() > 20, "{} covered frames", covered.len());
+    assert!(
+        covered
+            .iter()
+            .all(|r| r.support != "front" && r.support != "imu-only"),
+        "covered front frames must be carried by the rear lens: {:?}",
+        covered
+            .iter()
+            .map(|r| r.support.as_str())
+            .collect::<Vec<_>>()
+    );
+    let e = tip_errors(&session, episode, "left", &world_from_scene, Some(window));
+    let worst = e.position.iter().copied().fold(0.0, f64::max);
+    println!(
+        "ep003 left, front covered: {} frames, worst {:.1} mm",
+        e.frames,
+        worst * 1e3
+    );
+    assert!(worst < BRIDGED_M, "worst {worst} m");
+    // Right: both lenses covered: IMU-only frames, said so in the outputs and the record.
+    let rows = out_rows(&session, episode, "right");
+    let truth = truth_frames(&session, episode, "right", "front");
+    let blind: Vec<&OutRow> = rows
+        .iter()
+        .filter(|r| {
+            truth_at(&Default::default(), &truth, r.t_camera)
+                .is_some_and(|f| (window.0..window.1).contains(&f.t_session))
+        })
+        .collect();
+    assert!(blind.iter().all(|r| r.support == "imu-only"));
+    let q = read_quality(
+        &session
+            .join("episodes")
+            .join(episode)
+            .join("out/quality.json"),
+    )
+    .unwrap();
+    let w = &q.wrists["right"];
+    println!("ep003 right: {} {:?}", q.verdict.as_str(), q.reasons);
+    assert!(w.support_fractions["imu-only"] > 0.0);
+    assert!(
+        (w.longest_unsupported_s - BLIND.1).abs() < 0.2,
+        "longest unsupported run {}",
+        w.longest_unsupported_s
+    );
+    assert_ne!(
+        q.verdict,
+        Verdict::Usable,
+        "a 1.5 s IMU-only stretch is not silent"
+    );
+    assert!(
+        q.reasons
+            .iter()
+            .any(|r| r.contains("right") && r.contains("IMU-only"))
+    );
+}
+
+/// The session's run folder copied (hard links) with its stage results, to change something.
+fn copy_of_run(name: &str) -> (tempfile::TempDir, PathBuf) {
+    let session = shared_run();
+    let dir = tempfile::tempdir_in(session.parent().unwrap()).unwrap();
+    let copy = dir.path().join(name);
+    copy_tree(&session, &copy);
+    (dir, copy)
+}
+
+/// Replace a file of a hard-linked copy without touching the original.
+fn replace_file(path: &Path, bytes: &[u8]) {
+    std::fs::remove_file(path).unwrap();
+    std::fs::write(path, bytes).unwrap();
+}
+
+#[test]
+fn building_the_rear_map_from_the_other_wrist_changes_little() {
+    let (_tmp, copy) = copy_of_run("swap");
+    let toml = copy.join("session.toml");
+    let text = std::fs::read_to_string(&toml).unwrap();
+    replace_file(&toml, format!("map_wrist = \"right\"\n{text}").as_bytes());
+    let ctx = SessionContext::load(&toml).unwrap();
+    let report = run(&ctx, &RunOptions::default(), &NoProgress).unwrap();
+    println!("swap run: {:?}", report.counts);
+    let original = shared_run();
+    let mut worst: f64 = 0.0;
+    for episode in ["ep001", "ep002"] {
+        for camera in ["left", "right"] {
+            let a = out_rows(&original, episode, camera);
+            let b = out_rows(&copy, episode, camera);
+            // The scene frames differ by a rigid transform (another map's origin and heading):
+            // compare after aligning b to a on this stream.
+            let est: Vec<_> = b.iter().map(|r| r.tip.translation.vector).collect();
+            let tru: Vec<_> = a.iter().map(|r| r.tip.translation.vector).collect();
+            let sim = kiwi_backend::vision::align::umeyama(&est, &tru, false).unwrap();
+            for (p, q) in est.iter().zip(&tru) {
+                worst = worst.max((sim.transform_point(p) - q).norm());
+            }
+        }
+    }
+    println!("map-builder swap: worst difference {:.2} mm", worst * 1e3);
+    assert!(worst < SWAP_M, "{worst}");
+}
+
+#[test]
+fn a_changed_input_reruns_exactly_the_stages_that_read_it() {
+    let (_tmp, copy) = copy_of_run("stale");
+    let imu = copy.join("episodes/ep001/left/imu.csv");
+    let text = std::fs::read_to_string(&imu).unwrap();
+    // Nudge one accelerometer sample by 1 mm/s² (still a valid log).
+    let mut lines: Vec<String> = text.lines().map(str::to_string).collect();
+    let mut fields: Vec<String> = lines[100].split(',').map(str::to_string).collect();
+    let ax: f64 = fields[4].parse().unwrap();
+    fields[4] = format!("{}", ax + 0.001);
+    lines[100] = fields.join(",");
+    replace_file(&imu, (lines.join("\n") + "\n").as_bytes());
+    let ctx = SessionContext::load(&copy.join("session.toml")).unwrap();
+    let status = kiwi_backend::pipeline::status::status(&ctx, None).unwrap();
+    let stale: Vec<String> = status
+        .iter()
+        .filter(|s| s.state != "current")
+        .map(|s| format!("{}/{} {} {}", s.scope, s.stage, s.state, s.detail))
+        .collect();
+    assert_eq!(stale.len(), 1, "{stale:?}");
+    assert!(stale[0].starts_with("ep001/fusion-left stale") && stale[0].contains("imu.csv"));
+    let report = run(&ctx, &RunOptions::default(), &NoProgress).unwrap();
+    let ran: Vec<&str> = report
+        .stages
+        .iter()
+        .filter(|s| matches!(s.outcome, Outcome::Ran { .. }))
+        .map(|s| s.stage.as_str())
+        .collect();
+    assert_eq!(
+        ran,
+        ["ep001/fusion-left", "ep001/outputs"],
+        "{:?}",
+        report.counts
+    );
+}
+
+#[test]
+fn bad_input_gives_a_named_cause_and_the_other_episodes_finish() {
+    let (_tmp, copy) = copy_of_run("bad");
+    // A missing stream in one episode, a camera without common sound in another.
+    std::fs::remove_file(copy.join("episodes/ep001/right/rear/frames.csv")).unwrap();
+    let wav = copy.join("episodes/ep002/right/audio.wav");
+    let mut noise = Vec::new();
+    {
+        let spec = hound::WavSpec {
+            channels: 1,
+            sample_rate: 48_000,
+            bits_per_sample: 16,
+            sample_format: hound::SampleFormat::Int,
+        };
+        let mut w = hound::WavWriter::new(std::io::Cursor::new(&mut noise), spec).unwrap();
+        let mut x: u64 = 12345;
+        for _ in 0..48_000 * 12 {
+            x = x
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            w.write_sample(((x >> 48) as i16) / 8).unwrap();
+        }
+        w.finalize().unwrap();
+    }
+    replace_file(&wav, &noise);
+    let ctx = SessionContext::load(&copy.join("session.toml")).unwrap();
+    let report = run(&ctx, &RunOptions::default(), &NoProgress).unwrap();
+    let verdict = |ep: &str| report.episodes.iter().find(|e| e.episode == ep).unwrap();
+    let ep1 = verdict("ep001");
+    assert_eq!(ep1.verdict, Verdict::Unusable);
+    assert!(
+        ep1.reasons
+            .iter()
+            .any(|r| r.contains("right/rear/frames.csv")),
+        "{:?}",
+        ep1.reasons
+    );
+    let ep2 = verdict("ep002");
+    assert_eq!(ep2.verdict, Verdict::Unusable);
+    assert!(
+        ep2.reasons
+            .iter()
+            .any(|r| r.contains("right") && r.contains("timeline")),
+        "{:?}",
+        ep2.reasons
+    );
+    // The others still finished, and said so.
+    for ep in ["ep000", "ep003"] {
+        assert!(
+            copy.join("episodes")
+                .join(ep)
+                .join("out/left.csv")
+                .is_file()
+        );
+    }
+    assert_eq!(report.failed_episodes(), 2);
+    // The broken episode's out/ holds only its verdict, never stale trajectories.
+    assert!(!copy.join("episodes/ep001/out/left.csv").exists());
+    let q = read_quality(&copy.join("episodes/ep001/out/quality.json")).unwrap();
+    assert_eq!(q.verdict, Verdict::Unusable);
+    let _ = DURATIONS;
+}
