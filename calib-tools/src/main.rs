@@ -591,6 +591,12 @@ fn outputs(command: &Command) -> Vec<&std::path::Path> {
         Command::Bench(BenchCommand::Compare(a)) => vec![&a.out],
         Command::Bench(BenchCommand::FakeServo(a)) => vec![&a.link],
         Command::Certify(a) => vec![&a.out],
+        Command::Hardware(kiwi_calib::hardware::cli::HardwareCommand::Render { out, .. }) => {
+            vec![out]
+        }
+        Command::Hardware(kiwi_calib::hardware::cli::HardwareCommand::Generate { .. }) => {
+            Vec::new()
+        }
         Command::Validate { .. } | Command::BenchIntrinsics(_) | Command::Units(_) => Vec::new(),
     }
 }
