@@ -160,7 +160,11 @@ fn check_frame(
 /// Check a camera's own files: `meta.json`, the whole `imu.csv` (with the units check), and
 /// `audio.wav` (header against size and meta's rate; decoded when `deep`). Returns the lenses
 /// meta.json lists and the problems.
-fn check_camera_files(layout: &EpisodeLayout, camera: &str, deep: bool) -> (Vec<String>, Vec<String>) {
+fn check_camera_files(
+    layout: &EpisodeLayout,
+    camera: &str,
+    deep: bool,
+) -> (Vec<String>, Vec<String>) {
     let mut problems = Vec::new();
     let meta = match layout.read_meta(camera) {
         Ok(m) => m,

@@ -577,12 +577,15 @@ fn outputs(command: &Command) -> Vec<&std::path::Path> {
         | Command::AvDelay { out, .. }
         | Command::Export { out, .. }
         | Command::ImportKalibr { out, .. }
-        | Command::Target(TargetCommand::Aprilgrid { out, .. } | TargetCommand::Aruco { out, .. }) => {
+        | Command::Target(
+            TargetCommand::Aprilgrid { out, .. } | TargetCommand::Aruco { out, .. },
+        ) => {
             vec![out]
         }
-        Command::ImuNoise { out, plot, .. } => {
-            std::iter::once(out).chain(plot.as_ref()).map(PathBuf::as_path).collect()
-        }
+        Command::ImuNoise { out, plot, .. } => std::iter::once(out)
+            .chain(plot.as_ref())
+            .map(PathBuf::as_path)
+            .collect(),
         Command::Corners(kiwi_calib::import::CornersCommand::Import(a)) => vec![&a.out],
         Command::Detect(a) => vec![&a.out],
         Command::Intrinsics(a) => vec![&a.out],

@@ -121,7 +121,8 @@ fn within<T: Send + 'static>(limit: Duration, f: impl FnOnce() -> T + Send + 'st
     std::thread::spawn(move || {
         let _ = tx.send(f());
     });
-    rx.recv_timeout(limit).expect("hung: a thread waits on one that failed")
+    rx.recv_timeout(limit)
+        .expect("hung: a thread waits on one that failed")
 }
 
 #[test]
@@ -164,7 +165,11 @@ fn a_servo_that_dies_mid_recording_ends_the_recording_on_time() {
         record(&config, &out, &mut |_| {}).unwrap()
     });
     let stats = killer.join().unwrap();
-    assert!(started.elapsed() < Duration::from_secs(5), "{:?}", started.elapsed());
+    assert!(
+        started.elapsed() < Duration::from_secs(5),
+        "{:?}",
+        started.elapsed()
+    );
     assert!(report.samples >= 10 && report.missed >= 20, "{report:?}");
     // A reply in flight when the servo stopped may be lost, never invented.
     assert!(report.samples as usize <= stats.served_positions.len());

@@ -724,15 +724,15 @@ impl LensCalibration {
                 "set the lens image size",
             ));
         }
-        let (w, h) = (
-            f64::from(self.resolution[0]),
-            f64::from(self.resolution[1]),
-        );
+        let (w, h) = (f64::from(self.resolution[0]), f64::from(self.resolution[1]));
         for (name, value, size) in [("cx", values[2], w), ("cy", values[3], h)] {
             if !(-0.5..size - 0.5).contains(&value) {
                 return Err(CoreError::invalid_value(
                     format!("{field}.intrinsics.{name}"),
-                    format!("a principal point inside the {w} × {h} image (-0.5 to {})", size - 0.5),
+                    format!(
+                        "a principal point inside the {w} × {h} image (-0.5 to {})",
+                        size - 0.5
+                    ),
                     format!("{value} px"),
                     "check that the intrinsics belong to this resolution (a calibration at \
                      another image size must be rescaled)",

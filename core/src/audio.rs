@@ -129,9 +129,8 @@ pub fn wav_info<R: std::io::Read>(reader: R, file_len: u64, path: &Path) -> Resu
     if frames == 0 {
         return Err(audio_error(path, "the WAV file holds no samples"));
     }
-    let bytes = u64::from(frames)
-        * u64::from(spec.channels)
-        * u64::from(spec.bits_per_sample.div_ceil(8));
+    let bytes =
+        u64::from(frames) * u64::from(spec.channels) * u64::from(spec.bits_per_sample.div_ceil(8));
     if file_len < bytes {
         return Err(audio_error(
             path,

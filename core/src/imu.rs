@@ -391,7 +391,6 @@ pub fn write_imu_csv(path: &Path, samples: &[ImuSample]) -> Result<()> {
     })
 }
 
-
 /// Standard gravity (m/s²).
 pub const STANDARD_GRAVITY_M_S2: f64 = 9.806_65;
 /// Lowest plausible IMU sample rate (Hz): camera IMUs log at 100 Hz to a few kHz, phones at
@@ -402,9 +401,11 @@ const MAX_IMU_RATE_HZ: f64 = 20_000.0;
 /// A resting accelerometer reads |g| within this of standard gravity (m/s²): latitude and
 /// altitude change g by < 0.05 m/s², consumer IMUs' scale and bias errors by a few per cent.
 const REST_GRAVITY_TOLERANCE_M_S2: f64 = 1.0;
-/// Without a resting stretch the median |specific force| of a hand-held log stays this close
-/// to g (m/s²): motion adds and removes a few m/s² around it.
-const MOVING_GRAVITY_TOLERANCE_M_S2: f64 = 3.5;
+/// Without a resting stretch the median |specific force| of a hand-held log lies in this range
+/// (m/s²): hand motion adds and removes up to a few g around gravity, but only free fall
+/// brings the median below half a g, and no hand keeps up 5 g; a log in g (median ≈ 1–3) or in
+/// mm/s² (≈ 10 000) falls far outside.
+const MOVING_GRAVITY_RANGE_M_S2: (f64, f64) = (5.0, 50.0);
 /// Length (s) of the windows in which rest is detected.
 const REST_WINDOW_S: f64 = 0.1;
 /// A window is at rest when the mean specific force of its two halves differs by less than
@@ -524,8 +525,7 @@ pub fn check_imu_log(
         let a = (a1 + a2) / 2.0;
         let norms: Vec<f64> = (start..start + w).map(|i| accel(i).norm()).collect();
         let mu = norms.iter().sum::<f64>() / w as f64;
-        let spread =
-            (norms.iter().map(|v| (v - mu).powi(2)).sum::<f64>() / (w - 1) as f64).sqrt();
+        let spread = (norms.iter().map(|v| (v - mu).powi(2)).sum::<f64>() / (w - 1) as f64).sqrt();
         window_gravity.push(a.norm());
         if mu > 0.0
             && (a1 - a2).norm() < REST_CHANGE_FRACTION * mu
@@ -544,24 +544,34 @@ pub fn check_imu_log(
     let windows = window_gravity.len().max(1);
     summary.rest_fraction = rest_gravity.len() as f64 / windows as f64;
     let at_rest = rest_gravity.len() >= MIN_REST_WINDOWS;
-    let (gravity, tolerance) = if at_rest {
-        (median(&mut rest_gravity), REST_GRAVITY_TOLERANCE_M_S2)
+    let (gravity, range) = if at_rest {
+        let g = median(&mut rest_gravity);
+        (
+            g,
+            (
+                STANDARD_GRAVITY_M_S2 - REST_GRAVITY_TOLERANCE_M_S2,
+                STANDARD_GRAVITY_M_S2 + REST_GRAVITY_TOLERANCE_M_S2,
+            ),
+        )
     } else if !window_gravity.is_empty() {
-        (median(&mut window_gravity), MOVING_GRAVITY_TOLERANCE_M_S2)
+        (median(&mut window_gravity), MOVING_GRAVITY_RANGE_M_S2)
     } else {
         let mut all: Vec<f64> = (0..n).map(|i| accel(i).norm()).collect();
-        (median(&mut all), MOVING_GRAVITY_TOLERANCE_M_S2)
+        (median(&mut all), MOVING_GRAVITY_RANGE_M_S2)
     };
     summary.gravity_m_s2 = gravity;
-    if !((gravity - STANDARD_GRAVITY_M_S2).abs() <= tolerance) {
+    if !(range.0..=range.1).contains(&gravity) {
         return Err(invalid(
             "columns ax, ay, az",
             format!(
                 "specific force in m/s²: |accelerometer| ≈ {STANDARD_GRAVITY_M_S2} m/s² {}",
                 if at_rest {
-                    "at rest"
+                    format!("at rest ({} to {})", range.0, range.1)
                 } else {
-                    "over the log"
+                    format!(
+                        "over the log (median of 0.1 s means {} to {})",
+                        range.0, range.1
+                    )
                 }
             ),
             format!("{gravity:.4}"),
@@ -665,9 +675,13 @@ pub fn check_imu_samples(path: &Path, samples: &[ImuSample]) -> Result<ImuLogSum
 const DEG_PER_S_FIX: &str = "the gyroscope looks like it is in deg/s: multiply gx, gy, gz by \
                              π/180 = 0.0174533 (KIWI's imu.csv is in rad/s)";
 
+/// A log whose |specific force| (at rest, or its median while moving) lies in this range is in
+/// g: 1 at rest, up to a few while shaken; no m/s² log reads this little unless in free fall.
+const G_UNITS_RANGE: (f64, f64) = (0.5, 4.0);
+
 /// The likely unit mistake behind an accelerometer that reads `gravity` at rest.
 pub fn gravity_unit_hint(gravity: f64) -> &'static str {
-    if (gravity - 1.0).abs() < 0.2 {
+    if (G_UNITS_RANGE.0..=G_UNITS_RANGE.1).contains(&gravity) {
         "the accelerometer looks like it is in g: multiply ax, ay, az by 9.80665"
     } else if (gravity / STANDARD_GRAVITY_M_S2 - 1000.0).abs() < 200.0
         || (gravity - 1000.0).abs() < 200.0
@@ -683,7 +697,11 @@ pub fn gravity_unit_hint(gravity: f64) -> &'static str {
 
 fn time_unit_hint(rate_hz: f64) -> String {
     let plausible = |r: f64| (MIN_IMU_RATE_HZ..=MAX_IMU_RATE_HZ).contains(&r);
-    for (factor, unit) in [(1e3, "milliseconds"), (1e6, "microseconds"), (1e9, "nanoseconds")] {
+    for (factor, unit) in [
+        (1e3, "milliseconds"),
+        (1e6, "microseconds"),
+        (1e9, "nanoseconds"),
+    ] {
         if plausible(rate_hz * factor) {
             return format!(
                 "the timestamps look like {unit} (a {:.0} Hz IMU): divide t by {factor:e} \

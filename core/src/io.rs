@@ -295,13 +295,22 @@ mod tests {
         let set = set.canonicalize().unwrap();
         assert_eq!(dated_set_containing(&set).as_deref(), Some(set.as_path()));
         let inside = set.join("exports/new/camchain.yaml");
-        assert_eq!(dated_set_containing(&inside).as_deref(), Some(set.as_path()));
+        assert_eq!(
+            dated_set_containing(&inside).as_deref(),
+            Some(set.as_path())
+        );
         let dotted = set.join("../2026-11-22-2/report");
-        assert_eq!(dated_set_containing(&dotted).as_deref(), Some(set.as_path()));
+        assert_eq!(
+            dated_set_containing(&dotted).as_deref(),
+            Some(set.as_path())
+        );
         assert!(dated_set_containing(&dir.path().join("units/X5-1")).is_none());
         let err = ensure_outside_dated_set(&inside).unwrap_err().to_string();
         assert!(err.contains("never changed"), "{err}");
-        assert_eq!(parse_set_name("2026-11-22-3"), Some(("2026-11-22".into(), 3)));
+        assert_eq!(
+            parse_set_name("2026-11-22-3"),
+            Some(("2026-11-22".into(), 3))
+        );
         assert_eq!(parse_set_name("2026-02-30"), None);
         assert_eq!(parse_set_name("2026-11-22x"), None);
     }

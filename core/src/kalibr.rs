@@ -307,8 +307,9 @@ pub fn lenses_from_camchain(text: &str, path: &Path) -> Result<Vec<LensCalibrati
         };
         let matrix = |field: &str, value: &Option<serde_yaml_ng::Value>| match value {
             None => Ok(None),
-            Some(v) => matrix4(v).map(|m| Some(rigid_from_rows(&m))).ok_or_else(|| {
-                CoreError::Invalid {
+            Some(v) => matrix4(v)
+                .map(|m| Some(rigid_from_rows(&m)))
+                .ok_or_else(|| CoreError::Invalid {
                     path: path.to_path_buf(),
                     field: format!("{key}.{field}"),
                     expected: "a 4×4 matrix: 4 rows of 4 numbers, 16 numbers row by row, or \
@@ -316,8 +317,7 @@ pub fn lenses_from_camchain(text: &str, path: &Path) -> Result<Vec<LensCalibrati
                         .into(),
                     found: describe_yaml(v),
                     fix: "write the transform as Kalibr does (4 rows of 4)".into(),
-                }
-            }),
+                }),
         };
         let t_cn_cnm1 = matrix("T_cn_cnm1", &cam.t_cn_cnm1)?;
         let cam_from_imu = match (matrix("T_cam_imu", &cam.t_cam_imu)?, &t_cn_cnm1) {
@@ -426,7 +426,10 @@ fn rigid_from_rows(rows: &[[f64; 4]; 4]) -> RigidTransform {
 }
 
 /// `this_from_imu = this_from_previous * previous_from_imu`, when both are proper transforms.
-fn chain(this_from_previous: &RigidTransform, previous_from_imu: &RigidTransform) -> Option<RigidTransform> {
+fn chain(
+    this_from_previous: &RigidTransform,
+    previous_from_imu: &RigidTransform,
+) -> Option<RigidTransform> {
     let t = this_from_previous.to_pose().ok()? * previous_from_imu.to_pose().ok()?;
     Some(RigidTransform::from_pose(&t))
 }
@@ -435,7 +438,10 @@ fn describe_yaml(v: &serde_yaml_ng::Value) -> String {
     match v {
         serde_yaml_ng::Value::Sequence(s) => format!("a list of {} items", s.len()),
         serde_yaml_ng::Value::Mapping(_) => "a map without rows: 4, cols: 4, data".into(),
-        other => format!("`{}`", serde_yaml_ng::to_string(other).unwrap_or_default().trim()),
+        other => format!(
+            "`{}`",
+            serde_yaml_ng::to_string(other).unwrap_or_default().trim()
+        ),
     }
 }
 

@@ -123,24 +123,58 @@ pub struct Session {
 
 /// Parse `session.toml` text; an error names the field (`wrists.left.tool`) and its line.
 pub fn parse_session(text: &str, path: &Path) -> Result<Session> {
-    let line_of = |e: &toml::de::Error| {
-        e.span()
-            .map(|s| text[..s.start.min(text.len())].matches('\n').count() + 1)
-    };
-    let parse_error = |field: String, e: &toml::de::Error| CoreError::Parse {
-        path: path.to_path_buf(),
-        format: "TOML",
-        field: match line_of(e) {
-            Some(line) if field.is_empty() || field == "." => format!("line {line}"),
-            Some(line) => format!("{field} (line {line})"),
-            None => field,
-        },
-        message: e.message().trim().to_string(),
-        fix: "see docs/conventions.md for the session.toml fields".into(),
+    let parse_error = |field: String, e: &toml::de::Error| {
+        let at = e.span().map(|s| s.start.min(text.len()));
+        // A map keyed by an enum (`[wrists.left]`) shows as `?` in the path: name it from the
+        // table header above the error and the key on its line.
+        let field = match at {
+            Some(at) if field.contains('?') => field_at(text, at).unwrap_or(field),
+            _ => field,
+        };
+        let line = at.map(|at| {
+            text.as_bytes()[..at]
+                .iter()
+                .filter(|&&b| b == b'\n')
+                .count()
+                + 1
+        });
+        CoreError::Parse {
+            path: path.to_path_buf(),
+            format: "TOML",
+            field: match line {
+                Some(line) if field.is_empty() || field == "." => format!("line {line}"),
+                Some(line) => format!("{field} (line {line})"),
+                None => field,
+            },
+            message: e.message().trim().to_string(),
+            fix: "see docs/conventions.md for the session.toml fields".into(),
+        }
     };
     let de = toml::Deserializer::parse(text).map_err(|e| parse_error(".".into(), &e))?;
-    serde_path_to_error::deserialize(de)
-        .map_err(|e| parse_error(e.path().to_string(), e.inner()))
+    serde_path_to_error::deserialize(de).map_err(|e| parse_error(e.path().to_string(), e.inner()))
+}
+
+/// The dotted field name at byte `at` of TOML text: the nearest `[table]` header above it and
+/// the key of its line (`wrists.left.tool`).
+fn field_at(text: &str, at: usize) -> Option<String> {
+    let before = text.get(..at)?;
+    let line_start = before.rfind('\n').map_or(0, |i| i + 1);
+    let line = text.get(line_start..)?.lines().next()?;
+    let key = line
+        .split_once('=')
+        .map(|(k, _)| k.trim().trim_matches('"'));
+    let header = before[..line_start].lines().rev().find_map(|l| {
+        let l = l.trim();
+        l.strip_prefix('[')
+            .and_then(|r| r.split_once(']'))
+            .map(|(h, _)| h.trim_matches(['[', ']']).trim().to_string())
+    });
+    match (header, key) {
+        (Some(h), Some(k)) if !k.is_empty() => Some(format!("{h}.{k}")),
+        (Some(h), _) => Some(h),
+        (None, Some(k)) if !k.is_empty() => Some(k.to_string()),
+        _ => None,
+    }
 }
 
 impl Session {
@@ -535,5 +569,29 @@ impl EpisodeLayout {
             counts.push((lens.clone(), frames.len()));
         }
         Ok(counts)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+
+    use super::*;
+
+    #[test]
+    fn session_toml_errors_name_the_wrist() {
+        let text = "name = \"s\"\nmap_episode = \"ep000\"\n\n[wrists.left]\nunit = \"X5-1\"\n\
+                    calibration = \"units/X5-1/2026-01-01\"\ntool = \"spoon\"\n";
+        let e = parse_session(text, Path::new("session.toml"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("wrists.left.tool (line 7)"), "{e}");
+        assert!(e.contains("spoon"), "{e}");
+        assert!(e.contains("session.toml"), "{e}");
+        // Not TOML at all: the line, never a byte offset.
+        let e = parse_session("name = \n", Path::new("session.toml"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("line 1"), "{e}");
     }
 }

@@ -107,9 +107,12 @@ pub fn run_gripper(args: &GripperArgs) -> Result<()> {
         }
     }
     // A tool calibration written beside calibration.json by earlier versions is still read.
-    let legacy_tool_cal = args
-        .calibration
-        .with_file_name(kiwi_core::tool::tool_calibration_file_name(&def.name, &args.lens_name));
+    let legacy_tool_cal =
+        args.calibration
+            .with_file_name(kiwi_core::tool::tool_calibration_file_name(
+                &def.name,
+                &args.lens_name,
+            ));
     let tool_cal = match (&args.tool_calibration, args.nominal) {
         (Some(p), _) => Some(ToolCalibration::load(p)?),
         (None, false) if default_tool_cal.exists() => {

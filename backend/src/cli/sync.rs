@@ -155,7 +155,11 @@ fn sync_files(
             }
         }
     }
-    if let Some(d) = names.iter().enumerate().find_map(|(i, n)| names[..i].contains(n).then_some(n)) {
+    if let Some(d) = names
+        .iter()
+        .enumerate()
+        .find_map(|(i, n)| names[..i].contains(n).then_some(n))
+    {
         anyhow::bail!("--audio names camera `{d}` twice; give each camera once");
     }
     let mut inputs = Vec::new();

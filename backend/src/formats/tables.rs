@@ -31,8 +31,12 @@ fn input(path: &Path, message: String) -> BackendError {
 }
 
 fn read(path: &Path) -> Result<String> {
-    std::fs::read_to_string(path)
-        .map_err(|e| input(path, format!("cannot read: {}", kiwi_core::error::describe_io(&e))))
+    std::fs::read_to_string(path).map_err(|e| {
+        input(
+            path,
+            format!("cannot read: {}", kiwi_core::error::describe_io(&e)),
+        )
+    })
 }
 
 /// Node timestamps from the first column (`t`) of `frames.csv`.

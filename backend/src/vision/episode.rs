@@ -670,9 +670,15 @@ mod tests {
             });
             (seen, r)
         });
-        assert_eq!(seen, bad, "every frame before the bad one reaches the consumer");
+        assert_eq!(
+            seen, bad,
+            "every frame before the bad one reaches the consumer"
+        );
         let e = result.unwrap_err().to_string();
-        assert!(e.contains("000035.png") && e.contains("48×48") && e.contains("32×32"), "{e}");
+        assert!(
+            e.contains("000035.png") && e.contains("48×48") && e.contains("32×32"),
+            "{e}"
+        );
     }
 
     #[test]

@@ -408,12 +408,8 @@ impl VisualMap {
                 ),
             ));
         }
-        let map: Self = serde_json::from_str(text).map_err(|e| {
-            map_err(
-                path,
-                format!("not a valid KIWI visual map: {e}; {rebuild}"),
-            )
-        })?;
+        let map: Self = serde_json::from_str(text)
+            .map_err(|e| map_err(path, format!("not a valid KIWI visual map: {e}; {rebuild}")))?;
         map.validate(path)?;
         Ok(map)
     }

@@ -394,7 +394,11 @@ fn check_serial_device(port: &str) -> Result<(), BenchError> {
         if !meta.file_type().is_char_device() {
             return Err(open(format!(
                 "is a {}, not a serial device; give the adapter's device (e.g. /dev/ttyUSB0)",
-                if meta.is_dir() { "folder" } else { "regular file" }
+                if meta.is_dir() {
+                    "folder"
+                } else {
+                    "regular file"
+                }
             )));
         }
     }

@@ -183,7 +183,11 @@ pub fn run_units(cmd: &UnitsCommand) -> Result<String> {
                     .map(|s| format!("{s}\n"))
                     .map_err(|e| CalibError::Internal(format!("does not serialize: {e}")))
             } else {
-                Ok(format!("{}{}", list_text(&sets), leftovers_text(&leftovers)))
+                Ok(format!(
+                    "{}{}",
+                    list_text(&sets),
+                    leftovers_text(&leftovers)
+                ))
             }
         }
         UnitsCommand::Clean { units } => {
