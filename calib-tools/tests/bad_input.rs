@@ -219,6 +219,7 @@ fn kiwi_calib_refuses_bad_input_and_writes_nothing() {
     let regular_file = root.join("not-a-port");
     std::fs::write(&regular_file, "x").unwrap();
     let out = |name: &str| s(&root.join("out").join(name));
+    let bench = |name: &str| s(&root.join("bench").join(name));
     let set_s = s(&set);
 
     let mut cases = vec![
@@ -524,7 +525,7 @@ fn kiwi_calib_refuses_bad_input_and_writes_nothing() {
                 "--duration",
                 "20",
                 "--out",
-                &out("b1"),
+                &bench("b1"),
             ],
         )
         .says(&["/dev/kiwi-nonexistent", "does not exist"]),
@@ -539,7 +540,7 @@ fn kiwi_calib_refuses_bad_input_and_writes_nothing() {
                 "--duration",
                 "2",
                 "--out",
-                &out("b2"),
+                &bench("b2"),
             ],
         )
         .says(&["not-a-port", "regular file"]),
@@ -554,7 +555,7 @@ fn kiwi_calib_refuses_bad_input_and_writes_nothing() {
                 "--duration",
                 "0",
                 "--out",
-                &out("b3"),
+                &bench("b3"),
             ],
         )
         .says(&["duration"]),
@@ -712,6 +713,12 @@ fn kiwi_calib_refuses_bad_input_and_writes_nothing() {
             logs.clone(),
             kalibr.clone(),
         ];
+        // A servo recording waits for its device before it gives up, in a folder of its own.
+        if c.name.starts_with("bench servo")
+            && let Some(i) = c.args.iter().position(|a| a == "--out")
+        {
+            c.watched.push(PathBuf::from(&c.args[i + 1]));
+        }
     }
     let ran = run_all(&cases);
     assert!(ran >= 45, "{ran}");

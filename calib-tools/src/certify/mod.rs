@@ -459,6 +459,12 @@ fn progress_bar(show: bool, steps: u64) -> ProgressBar {
 /// Certify a unit: run every step, write the set, return the verdict.
 pub fn certify(o: &CertifyOptions) -> Result<CertifyReport> {
     let started = Instant::now();
+    // The options first: a wrong --date fails before any capture is read.
+    let date = o.date.clone().unwrap_or_else(utc_today);
+    kiwi_core::artifact::validate_date(&date).map_err(|e| CalibError::Input {
+        path: o.captures.clone(),
+        message: format!("--date: {e}"),
+    })?;
     let info = UnitInfo::load(&o.captures.join("unit.toml"))?;
     if info.unit_id != o.unit_id {
         return Err(CalibError::Input {
@@ -479,8 +485,6 @@ pub fn certify(o: &CertifyOptions) -> Result<CertifyReport> {
             ),
         });
     }
-    let date = o.date.clone().unwrap_or_else(utc_today);
-    kiwi_core::artifact::validate_date(&date)?;
     let previous = match &o.previous {
         Some(dir) => {
             let path = if dir.is_dir() {
