@@ -788,7 +788,7 @@ impl LensCalibration {
                 )
             })?;
             let distance = t.translation_m.iter().map(|v| v * v).sum::<f64>().sqrt();
-            if !(distance <= MAX_CAM_IMU_DISTANCE_M) {
+            if distance.is_nan() || distance > MAX_CAM_IMU_DISTANCE_M {
                 return Err(CoreError::invalid_value(
                     format!("{field}.cam_from_imu.translation_m"),
                     format!(
@@ -931,7 +931,7 @@ pub fn validate_date(date: &str) -> Result<()> {
 
 /// Days in `month` (1–12) of `year` in the Gregorian calendar; 0 for a month that does not exist.
 fn days_in_month(year: u32, month: u32) -> u32 {
-    let leap = (year % 4 == 0 && year % 100 != 0) || year % 400 == 0;
+    let leap = (year.is_multiple_of(4) && !year.is_multiple_of(100)) || year.is_multiple_of(400);
     match month {
         1 | 3 | 5 | 7 | 8 | 10 | 12 => 31,
         4 | 6 | 9 | 11 => 30,

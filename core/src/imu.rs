@@ -476,7 +476,7 @@ pub fn check_imu_log(
         found,
         fix,
     };
-    if n < 2 || !(duration_s > 0.0) {
+    if n < 2 || duration_s.is_nan() || duration_s <= 0.0 {
         return Err(invalid(
             "samples",
             "at least 2 samples with increasing times".into(),
