@@ -201,7 +201,7 @@ fn check_wav(path: &Path, deep: bool) -> std::result::Result<u32, String> {
             path.display()
         )
     })?;
-    let len = file.metadata().map(|m| m.len()).unwrap_or(0);
+    let len = file.metadata().map_or(0, |m| m.len());
     let info = kiwi_core::audio::wav_info(std::io::BufReader::new(file), len, path)
         .map_err(|e| e.to_string())?;
     if deep {
