@@ -579,7 +579,8 @@ fn outputs(command: &Command) -> Vec<&std::path::Path> {
         | Command::ImportKalibr { out, .. }
         | Command::Target(
             TargetCommand::Aprilgrid { out, .. } | TargetCommand::Aruco { out, .. },
-        ) => {
+        )
+        | Command::Hardware(kiwi_calib::hardware::cli::HardwareCommand::Render { out, .. }) => {
             vec![out]
         }
         Command::ImuNoise { out, plot, .. } => std::iter::once(out)
@@ -594,9 +595,6 @@ fn outputs(command: &Command) -> Vec<&std::path::Path> {
         Command::Bench(BenchCommand::Compare(a)) => vec![&a.out],
         Command::Bench(BenchCommand::FakeServo(a)) => vec![&a.link],
         Command::Certify(a) => vec![&a.out],
-        Command::Hardware(kiwi_calib::hardware::cli::HardwareCommand::Render { out, .. }) => {
-            vec![out]
-        }
         Command::Hardware(kiwi_calib::hardware::cli::HardwareCommand::Generate { .. }) => {
             Vec::new()
         }
