@@ -50,7 +50,10 @@ fn run(label: &str, n: usize, minutes: f64) {
         .cameras
         .iter()
         .zip(&offsets)
-        .map(|(c, o)| (c.offset_s - o).abs())
+        .map(|(c, o)| {
+            c.offset_s
+                .map_or(f64::INFINITY, |offset| (offset - o).abs())
+        })
         .fold(0.0, f64::max);
     println!(
         "sync {label}: {seconds:.2} s wall on {} threads, worst offset error {:.3} ms",

@@ -238,7 +238,10 @@ pub struct QualityRecord {
 fn session_time(clock: Option<&crate::sync::CameraClock>, t: f64) -> Option<f64> {
     clock
         .filter(|c| c.status != CameraStatus::Unmatched)
-        .map(|c| t * (1.0 + c.drift_ppm * 1e-6) + c.offset_s)
+        .and_then(|c| {
+            c.offset_s
+                .map(|offset| t * (1.0 + c.drift_ppm * 1e-6) + offset)
+        })
 }
 
 fn pose_fields(s: &mut String, pose: &Pose) {

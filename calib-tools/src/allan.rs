@@ -26,7 +26,8 @@
 use std::io::Read;
 use std::path::{Path, PathBuf};
 
-use nalgebra::{DMatrix, DVector};
+use kiwi_core::imu::STANDARD_GRAVITY_M_S2 as STANDARD_GRAVITY;
+use nalgebra::{DMatrix, DVector, Vector3};
 use rayon::prelude::*;
 use serde::Serialize;
 
@@ -34,8 +35,6 @@ use crate::error::{CalibError, Result};
 
 /// Axis names in `imu.csv` column order.
 pub const AXES: [&str; 6] = ["gx", "gy", "gz", "ax", "ay", "az"];
-/// Standard gravity (m/s²), for the units check.
-const STANDARD_GRAVITY: f64 = 9.806_65;
 /// A static accelerometer must read |g| within this of standard gravity (m/s²): latitude and
 /// altitude change g by < 0.05 m/s², scale errors of consumer IMUs by a few per cent.
 const GRAVITY_TOLERANCE: f64 = 0.5;
@@ -380,6 +379,8 @@ fn finish_log(
         ));
     }
     let rate_hz = (n - 1) as f64 / (t1 - t0);
+    let axis = |a: usize, i: usize| Vector3::new(axes[a][i], axes[a + 1][i], axes[a + 2][i]);
+    kiwi_core::imu::check_imu_log(path, n, (t0, t1), |i| axis(0, i), |i| axis(3, i))?;
     let gravity = median_norm(&axes[3], &axes[4], &axes[5]);
     Ok(StaticLog {
         path: path.to_path_buf(),
@@ -507,13 +508,7 @@ pub fn check_static(log: &StaticLog) -> Result<()> {
     }
     let g = log.gravity_m_s2;
     if (g - STANDARD_GRAVITY).abs() > GRAVITY_TOLERANCE {
-        let hint = if (g - 1.0).abs() < 0.1 {
-            "the accelerometer looks like it is in g: multiply ax, ay, az by 9.80665".to_owned()
-        } else if (g / STANDARD_GRAVITY - 1000.0).abs() < 100.0 {
-            "the accelerometer looks like it is in mm/s² or milli-g: convert to m/s²".to_owned()
-        } else {
-            "convert the accelerometer columns to m/s² (docs/conventions.md)".to_owned()
-        };
+        let hint = kiwi_core::imu::gravity_unit_hint(g);
         return Err(input(
             path,
             format!("|accelerometer| of a static log should be ≈ 9.81 m/s², found {g:.3}; {hint}"),

@@ -2,11 +2,11 @@
 
 use std::path::{Path, PathBuf};
 
-use kiwi_core::artifact::{InputRecord, Provenance, SCHEMA_VERSION, UnitCalibration};
+use kiwi_core::artifact::{InputRecord, LENS_NAMES, Provenance, SCHEMA_VERSION, UnitCalibration};
 use kiwi_core::io::{sha256_file, utc_now_rfc3339, write_atomic};
 use kiwi_core::{basalt, kalibr};
 
-use crate::error::Result;
+use crate::error::{CalibError, Result};
 
 /// Files written by [`export_all`].
 #[derive(Debug, Clone, serde::Serialize)]
@@ -62,16 +62,56 @@ pub fn export_all(calibration: &UnitCalibration, out_dir: &Path) -> Result<Expor
     })
 }
 
+/// Which KIWI lens a Kalibr camera became.
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize)]
+pub struct LensMapping {
+    /// The camera's key in the camchain (`cam0`, …).
+    pub kalibr: String,
+    /// The lens name in `calibration.json`.
+    pub lens: String,
+}
+
 /// Build a KIWI calibration from Kalibr files (camchain or camchain-imucam, optional imu.yaml).
+/// Cameras whose `rostopic` names a KIWI lens keep that name; the others are named in `camN`
+/// order from `lens_names` (default: `main` for a one-camera GO 3, else `front`, `rear`).
 pub fn import_kalibr(
     camchain: &Path,
     imu_path: Option<&Path>,
     unit_id: &str,
     camera_model: &str,
     date: &str,
-) -> Result<UnitCalibration> {
+    lens_names: Option<&[String]>,
+) -> Result<(UnitCalibration, Vec<LensMapping>)> {
     let text = kiwi_core::io::read_text(camchain)?;
-    let lenses = kalibr::lenses_from_camchain(&text, camchain)?;
+    let mut lenses = kalibr::lenses_from_camchain(&text, camchain)?;
+    let defaults: Vec<String> = match lens_names {
+        Some(names) => names.to_vec(),
+        None if lenses.len() == 1 && camera_model.to_ascii_uppercase().contains("GO") => {
+            vec!["main".into()]
+        }
+        None => vec!["front".into(), "rear".into()],
+    };
+    let mut mapping = Vec::new();
+    for (i, lens) in lenses.iter_mut().enumerate() {
+        let kalibr_name = format!("cam{i}");
+        let keep = lens_names.is_none() && LENS_NAMES.contains(&lens.name.as_str());
+        if !keep {
+            lens.name = defaults.get(i).cloned().ok_or_else(|| CalibError::Input {
+                path: camchain.to_path_buf(),
+                message: format!(
+                    "{kalibr_name} has no KIWI lens name: the camchain has {} cameras but {} \
+                     names were given ({}); pass --lenses with one of front, rear, main per camera",
+                    i + 1,
+                    defaults.len(),
+                    defaults.join(",")
+                ),
+            })?;
+        }
+        mapping.push(LensMapping {
+            kalibr: kalibr_name,
+            lens: lens.name.clone(),
+        });
+    }
     let imu = match imu_path {
         Some(p) => Some(kalibr::imu_from_yaml(&kiwi_core::io::read_text(p)?, p)?),
         None => None,
@@ -105,5 +145,5 @@ pub fn import_kalibr(
         certification: None,
     };
     calibration.validate()?;
-    Ok(calibration)
+    Ok((calibration, mapping))
 }

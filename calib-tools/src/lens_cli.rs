@@ -25,10 +25,10 @@ pub enum TargetCommand {
         #[arg(long, default_value_t = 6)]
         rows: usize,
         /// Edge of a tag's black square (m).
-        #[arg(long, default_value_t = 0.088)]
+        #[arg(long, default_value_t = 0.088, value_parser = kiwi_core::args::positive)]
         tag_size: f64,
         /// Gap between tags divided by the tag size.
-        #[arg(long, default_value_t = 0.3)]
+        #[arg(long, default_value_t = 0.3, value_parser = kiwi_core::args::non_negative)]
         spacing: f64,
         /// The SVG to write (a PDF and the target yaml go beside it); a `.pdf` name writes
         /// only the PDF and the yaml.
@@ -44,7 +44,7 @@ pub enum TargetCommand {
         #[arg(long)]
         id: usize,
         /// Edge of the black square (m).
-        #[arg(long)]
+        #[arg(long, value_parser = kiwi_core::args::positive)]
         size: f64,
         /// The SVG to write.
         #[arg(long)]

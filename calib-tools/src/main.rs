@@ -28,10 +28,10 @@ enum Command {
         #[arg(long)]
         out: PathBuf,
         /// Length in seconds.
-        #[arg(long, default_value_t = 120.0)]
+        #[arg(long, default_value_t = 120.0, value_parser = kiwi_core::args::positive)]
         duration: f64,
         /// Display refresh rate of the video (Hz); play it full screen on a monitor of this rate.
-        #[arg(long, default_value_t = 60.0)]
+        #[arg(long, default_value_t = 60.0, value_parser = kiwi_core::args::positive)]
         fps: f64,
         /// Print a JSON summary.
         #[arg(long)]
@@ -48,7 +48,7 @@ enum Command {
         #[arg(long = "calibration")]
         calibrations: Vec<PathBuf>,
         /// Display refresh rate (Hz).
-        #[arg(long, default_value_t = 60.0)]
+        #[arg(long, default_value_t = 60.0, value_parser = kiwi_core::args::positive)]
         refresh: f64,
         /// Distance from the rig's speaker to a capture's camera: NAME=METRES (removes the sound's
         /// travel time, 2.9 ms per metre). Without it a capture takes its distance from the
@@ -95,10 +95,15 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
-    /// Check a unit's calibration.json and print a summary.
+    /// Check a unit's calibration.json and print a summary. Fails (exit 3) when the
+    /// calibration is valid but lacks what `kiwi` needs (IMU noise, camera–IMU extrinsics and
+    /// time shifts), unless --partial.
     Validate {
-        /// The calibration.json to check.
+        /// The calibration.json to check (or the set folder holding it).
         calibration: PathBuf,
+        /// Accept a calibration in progress (e.g. intrinsics only).
+        #[arg(long)]
+        partial: bool,
         /// Print a machine-readable JSON summary.
         #[arg(long)]
         json: bool,
@@ -132,6 +137,10 @@ enum Command {
         /// Where to write calibration.json (an existing file is never overwritten).
         #[arg(long)]
         out: PathBuf,
+        /// KIWI lens names of cam0, cam1, … (comma-separated; default: the names in the
+        /// rostopics, else front,rear — main for a one-camera GO 3).
+        #[arg(long, value_delimiter = ',')]
+        lenses: Option<Vec<String>>,
     },
     /// Write print-ready targets: a Kalibr aprilgrid board (+ target yaml) or an ArUco tag.
     #[command(subcommand)]
@@ -164,9 +173,15 @@ enum Command {
     Hardware(kiwi_calib::hardware::cli::HardwareCommand),
 }
 
+/// Exit status of `validate` for a valid calibration that lacks what `kiwi` needs.
+const EXIT_INCOMPLETE: i32 = 3;
+
 fn main() -> Result<()> {
     let cli = Cli::parse();
     init_logging(cli.verbose);
+    for path in outputs(&cli.command) {
+        kiwi_core::io::ensure_outside_dated_set(path)?;
+    }
     match cli.command {
         Command::QrClock {
             out,
@@ -333,8 +348,18 @@ fn main() -> Result<()> {
                 }
             }
         }
-        Command::Validate { calibration, json } => {
+        Command::Validate {
+            calibration,
+            partial,
+            json,
+        } => {
+            let calibration = if calibration.is_dir() {
+                calibration.join("calibration.json")
+            } else {
+                calibration
+            };
             let cal = UnitCalibration::load(&calibration)?;
+            let missing = cal.missing_for_reconstruction();
             if json {
                 println!("{}", serde_json::to_string_pretty(&summary(&cal))?);
             } else {
@@ -376,6 +401,17 @@ fn main() -> Result<()> {
                     None => println!("  certification: none"),
                 }
             }
+            if !missing.is_empty() {
+                eprintln!(
+                    "{}: incomplete for reconstruction; missing {}",
+                    calibration.display(),
+                    missing.join(", ")
+                );
+                if !partial {
+                    eprintln!("(pass --partial to accept a calibration in progress)");
+                    std::process::exit(EXIT_INCOMPLETE);
+                }
+            }
         }
         Command::Export {
             calibration,
@@ -402,6 +438,7 @@ fn main() -> Result<()> {
             unit_id,
             camera_model,
             out,
+            lenses,
         } => {
             if out.exists() {
                 anyhow::bail!(
@@ -409,16 +446,26 @@ fn main() -> Result<()> {
                     out.display()
                 );
             }
-            let cal = kiwi_calib::export::import_kalibr(
+            let (cal, mapping) = kiwi_calib::export::import_kalibr(
                 &camchain,
                 imu.as_deref(),
                 &unit_id,
                 &camera_model,
                 &kiwi_core::io::utc_today(),
+                lenses.as_deref(),
             )
             .with_context(|| format!("importing {}", camchain.display()))?;
             cal.save(&out)?;
-            println!("wrote {} ({} lenses)", out.display(), cal.lenses.len());
+            let names: Vec<String> = mapping
+                .iter()
+                .map(|m| format!("{} → {}", m.kalibr, m.lens))
+                .collect();
+            println!(
+                "wrote {} ({} lenses: {})",
+                out.display(),
+                cal.lenses.len(),
+                names.join(", ")
+            );
         }
         Command::Target(cmd) => {
             for p in kiwi_calib::lens_cli::run_target(&cmd)? {
@@ -520,6 +567,41 @@ fn main() -> Result<()> {
     Ok(())
 }
 
+/// Every file or folder a command writes: none of them may lie inside a dated set (only
+/// `certify` creates sets, each in a folder of its own).
+fn outputs(command: &Command) -> Vec<&std::path::Path> {
+    use kiwi_calib::bench::cli::BenchCommand;
+    use kiwi_calib::lens_cli::TargetCommand;
+    match command {
+        Command::QrClock { out, .. }
+        | Command::AvDelay { out, .. }
+        | Command::Export { out, .. }
+        | Command::ImportKalibr { out, .. }
+        | Command::Target(
+            TargetCommand::Aprilgrid { out, .. } | TargetCommand::Aruco { out, .. },
+        )
+        | Command::Hardware(kiwi_calib::hardware::cli::HardwareCommand::Render { out, .. }) => {
+            vec![out]
+        }
+        Command::ImuNoise { out, plot, .. } => std::iter::once(out)
+            .chain(plot.as_ref())
+            .map(PathBuf::as_path)
+            .collect(),
+        Command::Corners(kiwi_calib::import::CornersCommand::Import(a)) => vec![&a.out],
+        Command::Detect(a) => vec![&a.out],
+        Command::Intrinsics(a) => vec![&a.out],
+        Command::CamImu(a) => vec![&a.out],
+        Command::Bench(BenchCommand::Servo(a)) => vec![&a.out],
+        Command::Bench(BenchCommand::Compare(a)) => vec![&a.out],
+        Command::Bench(BenchCommand::FakeServo(a)) => vec![&a.link],
+        Command::Certify(a) => vec![&a.out],
+        Command::Hardware(kiwi_calib::hardware::cli::HardwareCommand::Generate { .. }) => {
+            Vec::new()
+        }
+        Command::Validate { .. } | Command::BenchIntrinsics(_) | Command::Units(_) => Vec::new(),
+    }
+}
+
 fn summary(cal: &UnitCalibration) -> serde_json::Value {
     serde_json::json!({
         "unit_id": cal.unit_id,
@@ -532,6 +614,7 @@ fn summary(cal: &UnitCalibration) -> serde_json::Value {
             "time_shift_s": l.time_shift_s,
         })).collect::<Vec<_>>(),
         "has_imu_noise": cal.imu.is_some(),
+        "missing_for_reconstruction": cal.missing_for_reconstruction(),
         "av_delays": cal.av_delays.len(),
         "certified": cal.certification.as_ref().map(|c| c.passed),
     })

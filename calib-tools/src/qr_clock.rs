@@ -171,8 +171,39 @@ pub fn write_qr_clock(out: &Path, duration_s: f64, refresh_hz: f64) -> Result<Qr
     }
     write_atomic(&schedule_path, csv.as_bytes())?;
     let tmp = out.with_extension("partial.mp4");
+    let encoded = encode(out, &tmp, &wav, duration_s, refresh_hz);
+    let _ = std::fs::remove_file(&wav);
+    let frames = match encoded {
+        Ok(frames) => frames,
+        Err(e) => {
+            // Nothing of a failed run stays behind.
+            let _ = std::fs::remove_file(&tmp);
+            let _ = std::fs::remove_file(&schedule_path);
+            return Err(e);
+        }
+    };
+    std::fs::rename(&tmp, out).map_err(|e| CalibError::Input {
+        path: out.to_path_buf(),
+        message: e.to_string(),
+    })?;
+    Ok(QrClockOutput {
+        video: out.to_path_buf(),
+        schedule: schedule_path,
+        frames,
+        chirps: schedule.len(),
+    })
+}
+
+/// The ffmpeg binary: `KIWI_FFMPEG` if set (another build, or a path), else `ffmpeg`.
+fn ffmpeg_program() -> std::ffi::OsString {
+    std::env::var_os("KIWI_FFMPEG").unwrap_or_else(|| "ffmpeg".into())
+}
+
+/// Stream the frames into ffmpeg, muxed with the chirp track, into `tmp`; returns the frame
+/// count. If ffmpeg stops reading (it failed), it is killed and waited for, never left behind.
+fn encode(out: &Path, tmp: &Path, wav: &Path, duration_s: f64, refresh_hz: f64) -> Result<u64> {
     let (w, h) = VIDEO_SIZE;
-    let mut child = Command::new("ffmpeg")
+    let mut child = Command::new(ffmpeg_program())
         .args([
             "-y",
             "-loglevel",
@@ -189,7 +220,7 @@ pub fn write_qr_clock(out: &Path, duration_s: f64, refresh_hz: f64) -> Result<Qr
             "-",
         ])
         .arg("-i")
-        .arg(&wav)
+        .arg(wav)
         .args([
             "-c:v",
             "libx264",
@@ -207,7 +238,7 @@ pub fn write_qr_clock(out: &Path, duration_s: f64, refresh_hz: f64) -> Result<Qr
             "-f",
             "mp4",
         ])
-        .arg(&tmp)
+        .arg(tmp)
         .stdin(Stdio::piped())
         .spawn()
         .map_err(|e| CalibError::Input {
@@ -217,41 +248,39 @@ pub fn write_qr_clock(out: &Path, duration_s: f64, refresh_hz: f64) -> Result<Qr
             ),
         })?;
     let frames = (duration_s * refresh_hz).round() as u64;
-    {
-        let stdin = child
+    let fed = (|| -> Result<()> {
+        let mut stdin = child
             .stdin
-            .as_mut()
+            .take()
             .ok_or_else(|| CalibError::Internal("ffmpeg stdin unavailable".into()))?;
         for n in 0..frames {
             let img = render_frame(n, refresh_hz)?;
             stdin
                 .write_all(img.as_raw())
                 .map_err(|e| CalibError::Input {
-                    path: tmp.clone(),
-                    message: format!("ffmpeg stopped reading frames: {e}"),
+                    path: out.to_path_buf(),
+                    message: format!(
+                        "ffmpeg stopped reading frames after {n} of {frames} ({e}); does it \
+                         have libx264 and aac?"
+                    ),
                 })?;
         }
+        Ok(())
+        // stdin is dropped here: ffmpeg sees the end of the stream.
+    })();
+    if fed.is_err() {
+        let _ = child.kill();
     }
     let status = child.wait().map_err(|e| CalibError::Input {
-        path: tmp.clone(),
-        message: e.to_string(),
+        path: out.to_path_buf(),
+        message: format!("waiting for ffmpeg: {e}"),
     })?;
-    let _ = std::fs::remove_file(&wav);
+    fed?;
     if !status.success() {
-        let _ = std::fs::remove_file(&tmp);
         return Err(CalibError::Input {
             path: out.to_path_buf(),
             message: format!("ffmpeg failed ({status}); does it have libx264 and aac?"),
         });
     }
-    std::fs::rename(&tmp, out).map_err(|e| CalibError::Input {
-        path: out.to_path_buf(),
-        message: e.to_string(),
-    })?;
-    Ok(QrClockOutput {
-        video: out.to_path_buf(),
-        schedule: schedule_path,
-        frames,
-        chirps: schedule.len(),
-    })
+    Ok(frames)
 }

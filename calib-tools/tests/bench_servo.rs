@@ -113,3 +113,64 @@ fn a_missing_device_is_waited_for_then_recorded() {
     assert_eq!(report.samples as usize, stats.served_positions.len());
     assert_eq!(report.reconnects, 0);
 }
+
+/// Run `f` on another thread; fail if it does not return in `limit` (a hang fails the test
+/// instead of blocking the test run).
+fn within<T: Send + 'static>(limit: Duration, f: impl FnOnce() -> T + Send + 'static) -> T {
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        let _ = tx.send(f());
+    });
+    rx.recv_timeout(limit)
+        .expect("hung: a thread waits on one that failed")
+}
+
+#[test]
+fn the_servo_thread_stops_while_a_client_is_mid_request() {
+    // The consumer (the servo thread) is stopped while the producer (a client) has sent half a
+    // request and still holds the port open.
+    let dir = tempfile::tempdir().unwrap();
+    let link = dir.path().join("servo");
+    let servo = FakeServo::start(FakeServoConfig::new(1, &link)).unwrap();
+    let mut port = kiwi_calib::bench::servo::open_port(
+        link.to_str().unwrap(),
+        1_000_000,
+        Duration::from_millis(50),
+    )
+    .unwrap();
+    std::io::Write::write_all(&mut port, &[0xFF, 0xFF, 0x01]).unwrap();
+    let stats = within(Duration::from_secs(10), move || servo.stop());
+    assert_eq!(stats.served_positions.len(), 0);
+    drop(port);
+}
+
+#[test]
+fn a_servo_that_dies_mid_recording_ends_the_recording_on_time() {
+    // The producer (the servo) goes away for good mid-stream: the recorder keeps its clock,
+    // counts the missed periods and ends at its duration.
+    let dir = tempfile::tempdir().unwrap();
+    let link = dir.path().join("servo");
+    let servo = FakeServo::start(FakeServoConfig::new(1, &link)).unwrap();
+    let mut config = RecordConfig::new(link.to_str().unwrap(), 1);
+    config.rate_hz = 50.0;
+    config.duration_s = 1.5;
+    config.timeout = Duration::from_millis(15);
+    let out = dir.path().join("rec");
+    let killer = std::thread::spawn(move || {
+        std::thread::sleep(Duration::from_millis(500));
+        servo.stop()
+    });
+    let started = std::time::Instant::now();
+    let report = within(Duration::from_secs(20), move || {
+        record(&config, &out, &mut |_| {}).unwrap()
+    });
+    let stats = killer.join().unwrap();
+    assert!(
+        started.elapsed() < Duration::from_secs(5),
+        "{:?}",
+        started.elapsed()
+    );
+    assert!(report.samples >= 10 && report.missed >= 20, "{report:?}");
+    // A reply in flight when the servo stopped may be lost, never invented.
+    assert!(report.samples as usize <= stats.served_positions.len());
+}

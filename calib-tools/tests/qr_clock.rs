@@ -67,3 +67,36 @@ fn generated_display_video_round_trips() {
         );
     }
 }
+
+#[test]
+fn an_encoder_that_dies_mid_stream_is_reaped_and_leaves_nothing() {
+    // The consumer (ffmpeg) exits after reading a few bytes: the frame writer must see the
+    // broken pipe, wait for the process (no hang, no zombie) and remove what it wrote.
+    use std::os::unix::fs::PermissionsExt as _;
+    let dir = tempfile::tempdir().unwrap();
+    let fake = dir.path().join("ffmpeg");
+    std::fs::write(&fake, "#!/bin/sh\nhead -c 1000 > /dev/null\nexit 1\n").unwrap();
+    std::fs::set_permissions(&fake, std::fs::Permissions::from_mode(0o755)).unwrap();
+    let out_dir = dir.path().join("out");
+    std::fs::create_dir_all(&out_dir).unwrap();
+    let (tx, rx) = std::sync::mpsc::channel();
+    let (bin, video) = (env!("CARGO_BIN_EXE_kiwi-calib"), out_dir.join("clock.mp4"));
+    let fake2 = fake.clone();
+    std::thread::spawn(move || {
+        let output = Command::new(bin)
+            .env("KIWI_FFMPEG", &fake2)
+            .args(["qr-clock", "--duration", "3", "--out"])
+            .arg(&video)
+            .output()
+            .unwrap();
+        let _ = tx.send(output);
+    });
+    let output = rx
+        .recv_timeout(std::time::Duration::from_secs(60))
+        .expect("qr-clock hung on a dead encoder");
+    let said = String::from_utf8_lossy(&output.stderr);
+    assert!(!output.status.success());
+    assert!(said.contains("ffmpeg stopped reading frames"), "{said}");
+    let left: Vec<_> = std::fs::read_dir(&out_dir).unwrap().collect();
+    assert!(left.is_empty(), "left behind: {left:?}");
+}

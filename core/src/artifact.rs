@@ -555,6 +555,29 @@ impl UnitCalibration {
         self.lenses.iter().find(|l| l.name == name)
     }
 
+    /// What `kiwi` needs for reconstruction and this calibration lacks (field paths): the IMU
+    /// noise block, and each lens's `cam_from_imu` and `time_shift_s`. Empty when complete; a
+    /// calibration in progress (intrinsics only, a Kalibr import without imu.yaml) is valid
+    /// but not complete.
+    pub fn missing_for_reconstruction(&self) -> Vec<String> {
+        let mut missing = Vec::new();
+        if self.imu.is_none() {
+            missing.push("imu (the IMU noise model: `kiwi-calib imu-noise`)".to_string());
+        }
+        for (i, lens) in self.lenses.iter().enumerate() {
+            if lens.cam_from_imu.is_none() {
+                missing.push(format!(
+                    "lenses[{i}].cam_from_imu ({}: `kiwi-calib cam-imu`)",
+                    lens.name
+                ));
+            }
+            if lens.time_shift_s.is_none() {
+                missing.push(format!("lenses[{i}].time_shift_s ({})", lens.name));
+            }
+        }
+        missing
+    }
+
     /// Check every field; errors name the field path.
     pub fn validate(&self) -> Result<()> {
         if self.schema_version != SCHEMA_VERSION {
@@ -668,12 +691,13 @@ impl LensCalibration {
     }
 
     fn validate(&self, field: &str) -> Result<()> {
-        if self.name.trim().is_empty() {
+        if !LENS_NAMES.contains(&self.name.as_str()) {
             return Err(CoreError::invalid_value(
                 format!("{field}.name"),
-                "a lens name (front, rear, main)",
-                "an empty name",
-                "name the lens",
+                "a lens name: front, rear (X5) or main (GO 3)",
+                format!("`{}`", self.name),
+                "name the lens as the camera's folders do (a Kalibr import names cam0 front, \
+                 cam1 rear)",
             ));
         }
         let names = self.intrinsics.param_names();
@@ -699,6 +723,21 @@ impl LensCalibration {
                 format!("{:?}", self.resolution),
                 "set the lens image size",
             ));
+        }
+        let (w, h) = (f64::from(self.resolution[0]), f64::from(self.resolution[1]));
+        for (name, value, size) in [("cx", values[2], w), ("cy", values[3], h)] {
+            if !(-0.5..size - 0.5).contains(&value) {
+                return Err(CoreError::invalid_value(
+                    format!("{field}.intrinsics.{name}"),
+                    format!(
+                        "a principal point inside the {w} × {h} image (-0.5 to {})",
+                        size - 0.5
+                    ),
+                    format!("{value} px"),
+                    "check that the intrinsics belong to this resolution (a calibration at \
+                     another image size must be rescaled)",
+                ));
+            }
         }
         self.camera().map_err(|e| match e {
             CoreError::Invalid {
@@ -748,6 +787,19 @@ impl LensCalibration {
                     "write all 9 entries with at least 9 significant digits; re-export from the calibration",
                 )
             })?;
+            let distance = t.translation_m.iter().map(|v| v * v).sum::<f64>().sqrt();
+            if distance.is_nan() || distance > MAX_CAM_IMU_DISTANCE_M {
+                return Err(CoreError::invalid_value(
+                    format!("{field}.cam_from_imu.translation_m"),
+                    format!(
+                        "a lens within {MAX_CAM_IMU_DISTANCE_M} m of its IMU (both sit in one \
+                         camera body)"
+                    ),
+                    format!("{:?}, {distance} m away", t.translation_m),
+                    "translations are in metres (not mm or cm); recalibrate with `kiwi-calib \
+                     cam-imu` if the value is wrong",
+                ));
+            }
         }
         if let Some(s) = self.time_shift_s {
             finite(&format!("{field}.time_shift_s"), s, "s")?;
@@ -763,6 +815,13 @@ impl LensCalibration {
         Ok(())
     }
 }
+
+/// The lens names a calibration may use: the X5's two lenses and the GO 3's one.
+pub const LENS_NAMES: [&str; 3] = ["front", "rear", "main"];
+
+/// A lens and its IMU sit in one camera body: an X5 is 5 cm across, so a camera–IMU distance
+/// beyond this (m) is a unit mistake or a failed calibration.
+pub const MAX_CAM_IMU_DISTANCE_M: f64 = 0.2;
 
 /// Turn a serde error at `path` into (field path, message), naming a missing field itself.
 fn describe_serde_error(path: &str, message: &str) -> (String, String) {
@@ -828,24 +887,56 @@ fn non_negative(field: &str, value: f64, unit: &str) -> Result<()> {
     }
 }
 
-/// Check a `YYYY-MM-DD` date.
+/// Check a `YYYY-MM-DD` date: a real calendar day (2026-02-30 is not one).
 pub fn validate_date(date: &str) -> Result<()> {
     let parts: Vec<&str> = date.split('-').collect();
-    let ok = parts.len() == 3
+    let numbers = (parts.len() == 3
         && parts[0].len() == 4
         && parts[1].len() == 2
         && parts[2].len() == 2
-        && parts.iter().all(|p| p.chars().all(|c| c.is_ascii_digit()))
-        && parts[1].parse::<u32>().is_ok_and(|m| (1..=12).contains(&m))
-        && parts[2].parse::<u32>().is_ok_and(|d| (1..=31).contains(&d));
-    if ok {
-        Ok(())
-    } else {
-        Err(CoreError::invalid_value(
+        && parts.iter().all(|p| p.chars().all(|c| c.is_ascii_digit())))
+    .then(|| {
+        (
+            parts[0].parse::<u32>().ok(),
+            parts[1].parse::<u32>().ok(),
+            parts[2].parse::<u32>().ok(),
+        )
+    });
+    let Some((Some(year), Some(month), Some(day))) = numbers else {
+        return Err(CoreError::invalid_value(
             "date",
             "a date `YYYY-MM-DD`",
             format!("`{date}`"),
             "write the calibration date",
-        ))
+        ));
+    };
+    let days = days_in_month(year, month);
+    if days == 0 || !(1..=days).contains(&day) {
+        return Err(CoreError::invalid_value(
+            "date",
+            "a calendar date `YYYY-MM-DD`",
+            format!(
+                "`{date}` ({})",
+                if days == 0 {
+                    format!("there is no month {month}")
+                } else {
+                    format!("month {month} of {year} has {days} days")
+                }
+            ),
+            "write the real date of the calibration",
+        ));
+    }
+    Ok(())
+}
+
+/// Days in `month` (1–12) of `year` in the Gregorian calendar; 0 for a month that does not exist.
+fn days_in_month(year: u32, month: u32) -> u32 {
+    let leap = (year.is_multiple_of(4) && !year.is_multiple_of(100)) || year.is_multiple_of(400);
+    match month {
+        1 | 3 | 5 | 7 | 8 | 10 | 12 => 31,
+        4 | 6 | 9 | 11 => 30,
+        2 if leap => 29,
+        2 => 28,
+        _ => 0,
     }
 }

@@ -37,6 +37,9 @@ fn audio_error(path: &Path, message: impl Into<String>) -> CoreError {
 
 /// Decode an audio file to mono (channels averaged).
 pub fn read_audio(path: &Path) -> Result<Audio> {
+    if path.is_dir() {
+        return Err(audio_error(path, "it is a folder; expected a WAV file"));
+    }
     let ext = path
         .extension()
         .and_then(|e| e.to_str())
@@ -50,7 +53,17 @@ pub fn read_audio(path: &Path) -> Result<Audio> {
             ),
         ));
     }
-    let reader = hound::WavReader::open(path)
+    let file = std::fs::File::open(path).map_err(|source| CoreError::Io {
+        action: "opening",
+        path: path.to_path_buf(),
+        source,
+    })?;
+    decode_wav(std::io::BufReader::new(file), path)
+}
+
+/// Decode WAV content from any reader to mono; `path` names it in errors.
+pub fn decode_wav<R: std::io::Read>(reader: R, path: &Path) -> Result<Audio> {
+    let reader = hound::WavReader::new(reader)
         .map_err(|e| audio_error(path, format!("not a readable WAV file: {e}")))?;
     let spec = reader.spec();
     let channels = usize::from(spec.channels.max(1));
@@ -83,6 +96,54 @@ pub fn read_audio(path: &Path) -> Result<Audio> {
     Ok(Audio {
         rate_hz: f64::from(spec.sample_rate),
         samples,
+    })
+}
+
+/// What a WAV file's header says, checked against the file's size.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+pub struct WavInfo {
+    /// Sample rate (Hz).
+    pub rate_hz: u32,
+    /// Channels.
+    pub channels: u16,
+    /// Samples per channel the header announces.
+    pub frames: u32,
+}
+
+/// Read a WAV header without decoding the samples, and check that the file holds as many
+/// bytes as the header announces (a truncated copy fails here). `file_len` is the file's size.
+pub fn wav_info<R: std::io::Read>(reader: R, file_len: u64, path: &Path) -> Result<WavInfo> {
+    let reader = hound::WavReader::new(reader)
+        .map_err(|e| audio_error(path, format!("not a readable WAV file: {e}")))?;
+    let spec = reader.spec();
+    let frames = reader.duration();
+    if spec.sample_rate == 0 || spec.channels == 0 {
+        return Err(audio_error(
+            path,
+            format!(
+                "the header says {} Hz and {} channels",
+                spec.sample_rate, spec.channels
+            ),
+        ));
+    }
+    if frames == 0 {
+        return Err(audio_error(path, "the WAV file holds no samples"));
+    }
+    let bytes =
+        u64::from(frames) * u64::from(spec.channels) * u64::from(spec.bits_per_sample.div_ceil(8));
+    if file_len < bytes {
+        return Err(audio_error(
+            path,
+            format!(
+                "the header announces {frames} samples ({bytes} bytes) but the file has only \
+                 {file_len} bytes: it is truncated (copy it again)"
+            ),
+        ));
+    }
+    Ok(WavInfo {
+        rate_hz: spec.sample_rate,
+        channels: spec.channels,
+        frames,
     })
 }
 

@@ -9,7 +9,7 @@ use std::path::PathBuf;
 #[derive(Debug, thiserror::Error)]
 pub enum CoreError {
     /// A file or folder could not be read or written.
-    #[error("{action} {path}: {source}")]
+    #[error("{action} {path}: {}", describe_io(source))]
     Io {
         /// What was being done ("reading", "writing", "creating folder").
         action: &'static str,
@@ -67,6 +67,21 @@ pub enum CoreError {
         /// What the user can do.
         fix: String,
     },
+}
+
+/// An operating-system error in words a user can act on.
+pub fn describe_io(e: &std::io::Error) -> String {
+    use std::io::ErrorKind;
+    match e.kind() {
+        ErrorKind::IsADirectory => {
+            "it is a folder; expected a file (give the file inside it)".into()
+        }
+        ErrorKind::NotADirectory => "a part of the path is a file; expected a folder".into(),
+        ErrorKind::NotFound => "no such file or folder; check the path".into(),
+        ErrorKind::PermissionDenied => "permission denied; check the file's permissions".into(),
+        ErrorKind::InvalidData => format!("not UTF-8 text ({e}); expected a text file"),
+        _ => e.to_string(),
+    }
 }
 
 impl CoreError {

@@ -318,7 +318,12 @@ pub fn project_to_rotation(m: &Matrix3<f64>) -> Option<UnitQuaternion<f64>> {
     if !r.iter().all(|x| x.is_finite()) {
         return None;
     }
-    Some(UnitQuaternion::from_matrix(&r))
+    // Shepperd's method on the orthonormal `r`: `UnitQuaternion::from_matrix` iterates from the
+    // identity, which is a fixed point for a half turn (diag(-1, 1, -1) came back unchanged as
+    // the identity).
+    Some(UnitQuaternion::from_rotation_matrix(
+        &nalgebra::Rotation3::from_matrix_unchecked(r),
+    ))
 }
 
 /// Check that a matrix is a proper rotation (orthonormal, determinant +1) within
@@ -343,6 +348,16 @@ pub fn rotation_from_matrix(m: &Matrix3<f64>) -> Result<UnitQuaternion<f64>, Str
 mod tests {
     use super::*;
     use approx::assert_relative_eq;
+
+    #[test]
+    fn half_turns_are_kept() {
+        for axis in [Vector3::x_axis(), Vector3::y_axis(), Vector3::z_axis()] {
+            let half = UnitQuaternion::from_axis_angle(&axis, std::f64::consts::PI);
+            let m = half.to_rotation_matrix().into_inner();
+            let back = rotation_from_matrix(&m).unwrap();
+            assert!(back.angle_to(&half) < 1e-12, "{axis:?}: {back:?}");
+        }
+    }
 
     #[test]
     fn hat_vee_are_inverse() {

@@ -112,11 +112,13 @@ impl ImuSeries {
         })
     }
 
-    /// Read and validate an `imu.csv` file.
+    /// Read and validate an `imu.csv` file, including the units check of [`check_imu_log`].
     pub fn read_csv(path: &Path) -> Result<Self> {
         let reader = ImuCsvReader::open(path)?;
         let samples = reader.collect::<Result<Vec<_>>>()?;
-        Self::new(samples, path)
+        let series = Self::new(samples, path)?;
+        check_imu_samples(path, &series.samples)?;
+        Ok(series)
     }
 
     /// Write the series as `imu.csv` atomically.
@@ -387,6 +389,341 @@ pub fn write_imu_csv(path: &Path, samples: &[ImuSample]) -> Result<()> {
         writer.finish()?;
         Ok(())
     })
+}
+
+/// Standard gravity (m/s²).
+pub const STANDARD_GRAVITY_M_S2: f64 = 9.806_65;
+/// Lowest plausible IMU sample rate (Hz): camera IMUs log at 100 Hz to a few kHz, phones at
+/// 50 Hz or more; below this the timestamps are almost certainly not in seconds.
+const MIN_IMU_RATE_HZ: f64 = 20.0;
+/// Highest plausible IMU sample rate (Hz): no MEMS IMU streams faster.
+const MAX_IMU_RATE_HZ: f64 = 20_000.0;
+/// A resting accelerometer reads |g| within this of standard gravity (m/s²): latitude and
+/// altitude change g by < 0.05 m/s², consumer IMUs' scale and bias errors by a few per cent.
+const REST_GRAVITY_TOLERANCE_M_S2: f64 = 1.0;
+/// Without a resting stretch the median |specific force| of a hand-held log lies in this range
+/// (m/s²): hand motion adds and removes up to a few g around gravity, but only free fall
+/// brings the median below half a g, and no hand keeps up 5 g; a log in g (median ≈ 1–3) or in
+/// mm/s² (≈ 10 000) falls far outside.
+const MOVING_GRAVITY_RANGE_M_S2: (f64, f64) = (5.0, 50.0);
+/// Length (s) of the windows in which rest is detected.
+const REST_WINDOW_S: f64 = 0.1;
+/// A window is at rest when the mean specific force of its two halves differs by less than
+/// this fraction of |g| (0.01 ≈ 0.2 rad/s of rotation or 0.1 m/s² of acceleration change).
+const REST_CHANGE_FRACTION: f64 = 0.01;
+/// ... and when |specific force| varies by less than this fraction of its mean (a tap or a
+/// shake is not rest).
+const REST_SPREAD_FRACTION: f64 = 0.05;
+/// Rest-based checks need at least this many resting windows (half a second).
+const MIN_REST_WINDOWS: usize = 5;
+/// At rest a gyro reads its zero-rate offset (consumer MEMS: ±1–5 °/s) plus the little
+/// rotation rest allows; a median above this (rad/s, ≈ 29 °/s) is not rad/s.
+const MAX_REST_GYRO_RAD_S: f64 = 0.5;
+/// The white noise density of MEMS gyros is 5e-5 to 5e-4 rad/s/√Hz; ten times the worst is
+/// not a gyro in rad/s (in deg/s the same sensors read 57× higher).
+const MAX_GYRO_NOISE_DENSITY: f64 = 5e-3;
+/// No MEMS gyro measures beyond ±4000 °/s (70 rad/s); readings above this are in other units.
+const MAX_GYRO_RAD_S: f64 = 70.0;
+/// Fraction of samples allowed above [`MAX_GYRO_RAD_S`] (isolated glitches).
+const MAX_GYRO_OUTLIER_FRACTION: f64 = 1e-3;
+/// Length (s) of the windows of the rotation-consistency fit: short enough to follow hand
+/// rotation, long enough to average the sensors' white noise.
+const ROTATION_WINDOW_S: f64 = 0.02;
+/// The rotation-consistency scale is trusted when its standard error is below this.
+const ROTATION_SCALE_MAX_SE: f64 = 0.05;
+/// A trusted rotation scale outside this range means gyro and accelerometer disagree.
+const ROTATION_SCALE_RANGE: (f64, f64) = (0.5, 2.0);
+/// Degrees per radian: a gyro in deg/s reads this many times the rad/s value.
+const DEG_PER_RAD: f64 = 180.0 / std::f64::consts::PI;
+
+/// What [`check_imu_log`] measured in an IMU log.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct ImuLogSummary {
+    /// Number of samples.
+    pub samples: usize,
+    /// Mean sample rate (Hz).
+    pub rate_hz: f64,
+    /// Duration (s).
+    pub duration_s: f64,
+    /// |specific force| at rest (or the median over the log when it never rests), m/s².
+    pub gravity_m_s2: f64,
+    /// Fraction of the log's windows in which the IMU rests.
+    pub rest_fraction: f64,
+    /// Rotation the gyro reports relative to the rotation of gravity the accelerometer sees
+    /// (≈ 1 for a consistent log); `None` when the log turns too little to tell.
+    pub rotation_scale: Option<f64>,
+}
+
+/// Check that an IMU log is physically plausible in KIWI's units: timestamps in seconds
+/// (a plausible rate), accelerometer in m/s² (|g| at rest), gyroscope in rad/s (magnitudes,
+/// noise at rest, and rotation consistent with the accelerometer's view of gravity). An error
+/// names the likely unit mistake and the fix. Every reader of an IMU log calls this.
+///
+/// `n` samples span `time_range`; `gyro(i)` and `accel(i)` give sample `i`.
+pub fn check_imu_log(
+    path: &Path,
+    n: usize,
+    time_range: (f64, f64),
+    gyro: impl Fn(usize) -> Vector3<f64>,
+    accel: impl Fn(usize) -> Vector3<f64>,
+) -> Result<ImuLogSummary> {
+    let (t0, t1) = time_range;
+    let duration_s = t1 - t0;
+    let invalid = |field: &str, expected: String, found: String, fix: String| CoreError::Invalid {
+        path: path.to_path_buf(),
+        field: field.into(),
+        expected,
+        found,
+        fix,
+    };
+    if n < 2 || duration_s.is_nan() || duration_s <= 0.0 {
+        return Err(invalid(
+            "samples",
+            "at least 2 samples with increasing times".into(),
+            format!("{n} sample(s) over {duration_s} s"),
+            "record a longer log or check that the file is the IMU stream".into(),
+        ));
+    }
+    let rate_hz = (n - 1) as f64 / duration_s;
+    if !(MIN_IMU_RATE_HZ..=MAX_IMU_RATE_HZ).contains(&rate_hz) {
+        return Err(invalid(
+            "column t",
+            format!(
+                "times in seconds: a sample rate between {MIN_IMU_RATE_HZ} and \
+                 {MAX_IMU_RATE_HZ} Hz"
+            ),
+            format!(
+                "{n} samples over {duration_s} s, i.e. {rate_hz:.4} Hz over {:.2} h",
+                duration_s / 3600.0
+            ),
+            time_unit_hint(rate_hz),
+        ));
+    }
+    let mut summary = ImuLogSummary {
+        samples: n,
+        rate_hz,
+        duration_s,
+        gravity_m_s2: f64::NAN,
+        rest_fraction: 0.0,
+        rotation_scale: None,
+    };
+
+    // Rest windows (scale-free: judged by the accelerometer's steadiness alone).
+    let w = ((REST_WINDOW_S * rate_hz).round() as usize).max(4);
+    let mut rest_gravity = Vec::new();
+    let mut rest_gyro = Vec::new();
+    let mut rest_gyro_std = Vec::new();
+    let mut window_gravity = Vec::new();
+    for start in (0..n.saturating_sub(w - 1)).step_by(w) {
+        let half = w / 2;
+        let mean = |range: std::ops::Range<usize>, f: &dyn Fn(usize) -> Vector3<f64>| {
+            let len = range.len() as f64;
+            range.map(f).sum::<Vector3<f64>>() / len
+        };
+        let a1 = mean(start..start + half, &accel);
+        let a2 = mean(start + half..start + w, &accel);
+        let a = (a1 + a2) / 2.0;
+        let norms: Vec<f64> = (start..start + w).map(|i| accel(i).norm()).collect();
+        let mu = norms.iter().sum::<f64>() / w as f64;
+        let spread = (norms.iter().map(|v| (v - mu).powi(2)).sum::<f64>() / (w - 1) as f64).sqrt();
+        window_gravity.push(a.norm());
+        if mu > 0.0
+            && (a1 - a2).norm() < REST_CHANGE_FRACTION * mu
+            && spread < REST_SPREAD_FRACTION * mu
+        {
+            rest_gravity.push(a.norm());
+            let g = mean(start..start + w, &gyro);
+            rest_gyro.push(g.norm());
+            let var = (start..start + w)
+                .map(|i| (gyro(i) - g).norm_squared())
+                .sum::<f64>()
+                / (3 * (w - 1)) as f64;
+            rest_gyro_std.push(var.sqrt());
+        }
+    }
+    let windows = window_gravity.len().max(1);
+    summary.rest_fraction = rest_gravity.len() as f64 / windows as f64;
+    let at_rest = rest_gravity.len() >= MIN_REST_WINDOWS;
+    let (gravity, range) = if at_rest {
+        let g = median(&mut rest_gravity);
+        (
+            g,
+            (
+                STANDARD_GRAVITY_M_S2 - REST_GRAVITY_TOLERANCE_M_S2,
+                STANDARD_GRAVITY_M_S2 + REST_GRAVITY_TOLERANCE_M_S2,
+            ),
+        )
+    } else if !window_gravity.is_empty() {
+        (median(&mut window_gravity), MOVING_GRAVITY_RANGE_M_S2)
+    } else {
+        let mut all: Vec<f64> = (0..n).map(|i| accel(i).norm()).collect();
+        (median(&mut all), MOVING_GRAVITY_RANGE_M_S2)
+    };
+    summary.gravity_m_s2 = gravity;
+    if !(range.0..=range.1).contains(&gravity) {
+        return Err(invalid(
+            "columns ax, ay, az",
+            format!(
+                "specific force in m/s²: |accelerometer| ≈ {STANDARD_GRAVITY_M_S2} m/s² {}",
+                if at_rest {
+                    format!("at rest ({} to {})", range.0, range.1)
+                } else {
+                    format!(
+                        "over the log (median of 0.1 s means {} to {})",
+                        range.0, range.1
+                    )
+                }
+            ),
+            format!("{gravity:.4}"),
+            gravity_unit_hint(gravity).into(),
+        ));
+    }
+
+    // Gyro magnitudes beyond any MEMS range.
+    let over = (0..n).filter(|&i| gyro(i).norm() > MAX_GYRO_RAD_S).count();
+    if over as f64 > MAX_GYRO_OUTLIER_FRACTION * n as f64 {
+        let peak = (0..n).map(|i| gyro(i).norm()).fold(0.0, f64::max);
+        return Err(invalid(
+            "columns gx, gy, gz",
+            format!("angular rate in rad/s: at most {MAX_GYRO_RAD_S} rad/s (4000 °/s)"),
+            format!("{over} samples above it, up to {peak:.1}"),
+            DEG_PER_S_FIX.into(),
+        ));
+    }
+
+    // At rest the gyro reads its offset and white noise.
+    if at_rest {
+        let offset = median(&mut rest_gyro);
+        let density = median(&mut rest_gyro_std) / rate_hz.sqrt();
+        if offset > MAX_REST_GYRO_RAD_S || density > MAX_GYRO_NOISE_DENSITY {
+            return Err(invalid(
+                "columns gx, gy, gz",
+                format!(
+                    "angular rate in rad/s: at rest, an offset below {MAX_REST_GYRO_RAD_S} rad/s \
+                     and white noise below {MAX_GYRO_NOISE_DENSITY:e} rad/s/√Hz"
+                ),
+                format!(
+                    "an offset of {offset:.4} and white noise of {density:.3e} /√Hz while the \
+                     accelerometer rests"
+                ),
+                DEG_PER_S_FIX.into(),
+            ));
+        }
+    }
+
+    // Rotation consistency: in the body frame, specific force f turns as df/dt = -ω × f
+    // (plus the body's jerk, uncorrelated with it), so regressing df/dt on -ω × f gives the
+    // gyro's scale relative to the rotation the accelerometer sees.
+    let wr = ((ROTATION_WINDOW_S * rate_hz).round() as usize).max(1);
+    let m = n / wr;
+    if m >= 3 {
+        let means: Vec<(Vector3<f64>, Vector3<f64>)> = (0..m)
+            .map(|k| {
+                let r = k * wr..(k + 1) * wr;
+                let g = r.clone().map(&gyro).sum::<Vector3<f64>>() / wr as f64;
+                let a = r.map(&accel).sum::<Vector3<f64>>() / wr as f64;
+                (g, a)
+            })
+            .collect();
+        let dt = 2.0 * wr as f64 / rate_hz;
+        let (mut sxx, mut sxy, mut syy) = (0.0, 0.0, 0.0);
+        for k in 1..m - 1 {
+            let y = (means[k + 1].1 - means[k - 1].1) / dt;
+            let x = -means[k].0.cross(&means[k].1);
+            sxx += x.dot(&x);
+            sxy += x.dot(&y);
+            syy += y.dot(&y);
+        }
+        let count = 3 * (m - 2);
+        if sxx > 0.0 && count > 3 {
+            let s = sxy / sxx;
+            let residual = ((syy - s * sxy) / (count - 1) as f64).max(0.0);
+            let se = (residual / sxx).sqrt();
+            if se < ROTATION_SCALE_MAX_SE {
+                summary.rotation_scale = Some(s);
+                if !(ROTATION_SCALE_RANGE.0..=ROTATION_SCALE_RANGE.1).contains(&s) {
+                    return Err(invalid(
+                        "columns gx, gy, gz",
+                        "angular rate in rad/s, in the accelerometer's axes: the rotation the \
+                         gyro reports matches how gravity turns in the accelerometer (ratio ≈ 1)"
+                            .into(),
+                        format!("the gyro reports {s:.4} times that rotation (± {se:.4})"),
+                        rotation_scale_hint(s).into(),
+                    ));
+                }
+            }
+        }
+    }
+    Ok(summary)
+}
+
+/// [`check_imu_log`] over samples in memory.
+pub fn check_imu_samples(path: &Path, samples: &[ImuSample]) -> Result<ImuLogSummary> {
+    let range = match (samples.first(), samples.last()) {
+        (Some(a), Some(b)) => (a.t, b.t),
+        _ => (0.0, 0.0),
+    };
+    check_imu_log(
+        path,
+        samples.len(),
+        range,
+        |i| samples[i].gyro,
+        |i| samples[i].accel,
+    )
+}
+
+const DEG_PER_S_FIX: &str = "the gyroscope looks like it is in deg/s: multiply gx, gy, gz by \
+                             π/180 = 0.0174533 (KIWI's imu.csv is in rad/s)";
+
+/// A log whose |specific force| (at rest, or its median while moving) lies in this range is in
+/// g: 1 at rest, up to a few while shaken; no m/s² log reads this little unless in free fall.
+const G_UNITS_RANGE: (f64, f64) = (0.5, 4.0);
+
+/// The likely unit mistake behind an accelerometer that reads `gravity` at rest.
+pub fn gravity_unit_hint(gravity: f64) -> &'static str {
+    if (G_UNITS_RANGE.0..=G_UNITS_RANGE.1).contains(&gravity) {
+        "the accelerometer looks like it is in g: multiply ax, ay, az by 9.80665"
+    } else if (gravity / STANDARD_GRAVITY_M_S2 - 1000.0).abs() < 200.0
+        || (gravity - 1000.0).abs() < 200.0
+    {
+        "the accelerometer looks like it is in mm/s² or milli-g: convert ax, ay, az to m/s²"
+    } else if gravity < 0.5 {
+        "the accelerometer reads no gravity: KIWI needs the raw specific force (gravity \
+         included), not linear acceleration"
+    } else {
+        "convert the accelerometer columns to m/s² (docs/conventions.md)"
+    }
+}
+
+fn time_unit_hint(rate_hz: f64) -> String {
+    let plausible = |r: f64| (MIN_IMU_RATE_HZ..=MAX_IMU_RATE_HZ).contains(&r);
+    for (factor, unit) in [
+        (1e3, "milliseconds"),
+        (1e6, "microseconds"),
+        (1e9, "nanoseconds"),
+    ] {
+        if plausible(rate_hz * factor) {
+            return format!(
+                "the timestamps look like {unit} (a {:.0} Hz IMU): divide t by {factor:e} \
+                 (KIWI's imu.csv is in seconds)",
+                rate_hz * factor
+            );
+        }
+    }
+    "write t in seconds on the camera clock (docs/conventions.md)".into()
+}
+
+fn rotation_scale_hint(s: f64) -> &'static str {
+    if (s * DEG_PER_RAD - 1.0).abs() < 0.5 {
+        DEG_PER_S_FIX
+    } else if s < 0.0 {
+        "the gyro turns the opposite way: a gyro or accelerometer axis is flipped (or the \
+         accelerometer reads gravity instead of specific force); express both in the same \
+         right-handed IMU frame"
+    } else {
+        "check the gyro's units (rad/s) and that gyro and accelerometer share one IMU frame \
+         (same axis order and signs)"
+    }
 }
 
 #[cfg(test)]

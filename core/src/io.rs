@@ -123,6 +123,73 @@ pub fn create_dated_dir(root: &Path, date: &str) -> Result<PathBuf> {
     })
 }
 
+/// The date and same-day counter of a dated set's folder name (`YYYY-MM-DD` or
+/// `YYYY-MM-DD-N`), or `None` for any other name.
+pub fn parse_set_name(name: &str) -> Option<(String, u32)> {
+    let date = name.get(..10)?;
+    crate::artifact::validate_date(date).ok()?;
+    let n = match name.get(10..) {
+        Some("") | None => 1,
+        Some(rest) => rest.strip_prefix('-')?.parse().ok()?,
+    };
+    Some((date.to_string(), n))
+}
+
+/// The dated calibration set that `path` is or lies inside, if any: a folder named
+/// `YYYY-MM-DD[-N]` that holds a `calibration.json` (see [`create_dated_dir`]).
+pub fn dated_set_containing(path: &Path) -> Option<PathBuf> {
+    // Resolve the path the way the OS will (symbolic links, `..`), also where it does not
+    // exist yet: canonicalize every prefix that exists.
+    let absolute = if path.is_absolute() {
+        path.to_path_buf()
+    } else {
+        std::env::current_dir().ok()?.join(path)
+    };
+    let mut resolved = PathBuf::new();
+    for component in absolute.components() {
+        match component {
+            std::path::Component::ParentDir => {
+                resolved.pop();
+            }
+            std::path::Component::CurDir => {}
+            other => {
+                resolved.push(other);
+                if let Ok(real) = resolved.canonicalize() {
+                    resolved = real;
+                }
+            }
+        }
+    }
+    resolved
+        .ancestors()
+        .find(|a| {
+            a.file_name()
+                .and_then(|n| n.to_str())
+                .and_then(parse_set_name)
+                .is_some()
+                && a.join("calibration.json").is_file()
+        })
+        .map(Path::to_path_buf)
+}
+
+/// Refuse to write `path` (a file or an output folder) when it is or lies inside a dated set:
+/// a set is written once, by the command that creates it, and never changed afterwards.
+pub fn ensure_outside_dated_set(path: &Path) -> Result<()> {
+    match dated_set_containing(path) {
+        Some(set) => Err(CoreError::Invalid {
+            path: path.to_path_buf(),
+            field: "output".into(),
+            expected: "a place outside the dated calibration sets (a set is never changed \
+                       after it is written)"
+                .into(),
+            found: format!("a path inside the dated calibration set {}", set.display()),
+            fix: "write to a folder outside units/<unit>/<date>/ (recalibrating makes a new set)"
+                .into(),
+        }),
+        None => Ok(()),
+    }
+}
+
 /// SHA-256 of a file's content as lowercase hex, for provenance records.
 pub fn sha256_file(path: &Path) -> Result<String> {
     let mut file = std::fs::File::open(path).map_err(|source| CoreError::Io {
@@ -215,6 +282,37 @@ mod tests {
         let b = create_dated_dir(dir.path(), "2026-11-22").unwrap();
         assert!(a.ends_with("2026-11-22"));
         assert!(b.ends_with("2026-11-22-2"));
+    }
+
+    #[test]
+    fn dated_sets_are_recognized_through_relative_and_dotted_paths() {
+        let dir = tempfile::tempdir().unwrap();
+        let set = dir.path().join("units/X5-1/2026-11-22-2");
+        std::fs::create_dir_all(&set).unwrap();
+        // An empty dated folder (a claimed, unfinished set) is not a set yet.
+        assert!(dated_set_containing(&set).is_none());
+        std::fs::write(set.join("calibration.json"), "{}").unwrap();
+        let set = set.canonicalize().unwrap();
+        assert_eq!(dated_set_containing(&set).as_deref(), Some(set.as_path()));
+        let inside = set.join("exports/new/camchain.yaml");
+        assert_eq!(
+            dated_set_containing(&inside).as_deref(),
+            Some(set.as_path())
+        );
+        let dotted = set.join("../2026-11-22-2/report");
+        assert_eq!(
+            dated_set_containing(&dotted).as_deref(),
+            Some(set.as_path())
+        );
+        assert!(dated_set_containing(&dir.path().join("units/X5-1")).is_none());
+        let err = ensure_outside_dated_set(&inside).unwrap_err().to_string();
+        assert!(err.contains("never changed"), "{err}");
+        assert_eq!(
+            parse_set_name("2026-11-22-3"),
+            Some(("2026-11-22".into(), 3))
+        );
+        assert_eq!(parse_set_name("2026-02-30"), None);
+        assert_eq!(parse_set_name("2026-11-22x"), None);
     }
 
     #[test]

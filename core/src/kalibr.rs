@@ -185,7 +185,9 @@ struct KalibrCamera {
     distortion_coeffs: Vec<f64>,
     resolution: [u32; 2],
     #[serde(rename = "T_cam_imu", default)]
-    t_cam_imu: Option<Vec<Vec<f64>>>,
+    t_cam_imu: Option<serde_yaml_ng::Value>,
+    #[serde(rename = "T_cn_cnm1", default)]
+    t_cn_cnm1: Option<serde_yaml_ng::Value>,
     #[serde(default)]
     timeshift_cam_imu: Option<f64>,
     #[serde(default)]
@@ -217,8 +219,14 @@ fn yaml_error(path: &Path, e: &serde_yaml_ng::Error, fix: &str) -> CoreError {
 
 /// Lenses read from a Kalibr `camchain.yaml` or `camchain-imucam.yaml`, in `camN` order.
 /// The field of view is set to what the model supports, since Kalibr does not record it.
+///
+/// Accepts the variants found in public camchain files: an OpenCV FileStorage first line
+/// (`%YAML:1.0`), and `T_cam_imu` / `T_cn_cnm1` as four rows of four, one flat list of 16
+/// (row-major), or an OpenCV matrix (`!!opencv-matrix` with `rows`, `cols`, `data`). A camera
+/// without `T_cam_imu` gets it from the previous camera's through `T_cn_cnm1`.
 pub fn lenses_from_camchain(text: &str, path: &Path) -> Result<Vec<LensCalibration>> {
-    let cams: BTreeMap<String, KalibrCamera> = serde_yaml_ng::from_str(text).map_err(|e| {
+    let text = strip_opencv_header(text);
+    let cams: BTreeMap<String, KalibrCamera> = serde_yaml_ng::from_str(&text).map_err(|e| {
         yaml_error(
             path,
             &e,
@@ -297,25 +305,28 @@ pub fn lenses_from_camchain(text: &str, path: &Path) -> Result<Vec<LensCalibrati
                 ));
             }
         };
-        let cam_from_imu = match &cam.t_cam_imu {
-            None => None,
-            Some(rows) => {
-                if rows.len() != 4 || rows.iter().any(|r| r.len() != 4) {
-                    return Err(invalid(
-                        "T_cam_imu",
-                        "a 4×4 matrix",
-                        format!("{} rows", rows.len()),
-                    ));
-                }
-                Some(RigidTransform {
-                    rotation: [
-                        [rows[0][0], rows[0][1], rows[0][2]],
-                        [rows[1][0], rows[1][1], rows[1][2]],
-                        [rows[2][0], rows[2][1], rows[2][2]],
-                    ],
-                    translation_m: [rows[0][3], rows[1][3], rows[2][3]],
-                })
-            }
+        let matrix = |field: &str, value: &Option<serde_yaml_ng::Value>| match value {
+            None => Ok(None),
+            Some(v) => matrix4(v)
+                .map(|m| Some(rigid_from_rows(&m)))
+                .ok_or_else(|| CoreError::Invalid {
+                    path: path.to_path_buf(),
+                    field: format!("{key}.{field}"),
+                    expected: "a 4×4 matrix: 4 rows of 4 numbers, 16 numbers row by row, or \
+                               an OpenCV matrix"
+                        .into(),
+                    found: describe_yaml(v),
+                    fix: "write the transform as Kalibr does (4 rows of 4)".into(),
+                }),
+        };
+        let t_cn_cnm1 = matrix("T_cn_cnm1", &cam.t_cn_cnm1)?;
+        let cam_from_imu = match (matrix("T_cam_imu", &cam.t_cam_imu)?, &t_cn_cnm1) {
+            (Some(t), _) => Some(t),
+            (None, Some(this_from_previous)) => lenses
+                .last()
+                .and_then(|l: &LensCalibration| l.cam_from_imu.as_ref())
+                .and_then(|prev| chain(this_from_previous, prev)),
+            (None, None) => None,
         };
         let name = cam
             .rostopic
@@ -348,6 +359,90 @@ pub fn lenses_from_camchain(text: &str, path: &Path) -> Result<Vec<LensCalibrati
         });
     }
     Ok(lenses)
+}
+
+/// Drop an OpenCV FileStorage header (`%YAML:1.0`, not a valid YAML directive) and OpenCV's
+/// matrix tags, which YAML parsers refuse or keep as unknown tags.
+fn strip_opencv_header(text: &str) -> String {
+    let body = match text.trim_start().strip_prefix("%YAML:") {
+        Some(rest) => rest.split_once('\n').map_or("", |(_, r)| r),
+        None => text,
+    };
+    body.replace("!!opencv-matrix", "")
+}
+
+/// A 4×4 matrix from rows of four, a flat row-major list of 16, or an OpenCV matrix map.
+fn matrix4(value: &serde_yaml_ng::Value) -> Option<[[f64; 4]; 4]> {
+    use serde_yaml_ng::Value;
+    let number = |v: &Value| v.as_f64().filter(|x| x.is_finite());
+    let flat: Vec<f64> = match value {
+        Value::Tagged(t) => return matrix4(&t.value),
+        Value::Mapping(m) => {
+            let dims = (m.get("rows")?.as_u64()?, m.get("cols")?.as_u64()?);
+            if dims != (4, 4) {
+                return None;
+            }
+            m.get("data")?
+                .as_sequence()?
+                .iter()
+                .map(number)
+                .collect::<Option<_>>()?
+        }
+        Value::Sequence(items) if items.len() == 4 && items.iter().all(Value::is_sequence) => {
+            let mut out = Vec::with_capacity(16);
+            for row in items {
+                let row = row.as_sequence()?;
+                if row.len() != 4 {
+                    return None;
+                }
+                for v in row {
+                    out.push(number(v)?);
+                }
+            }
+            out
+        }
+        Value::Sequence(items) => items.iter().map(number).collect::<Option<_>>()?,
+        _ => return None,
+    };
+    if flat.len() != 16 {
+        return None;
+    }
+    let mut m = [[0.0; 4]; 4];
+    for (i, v) in flat.into_iter().enumerate() {
+        m[i / 4][i % 4] = v;
+    }
+    Some(m)
+}
+
+fn rigid_from_rows(rows: &[[f64; 4]; 4]) -> RigidTransform {
+    RigidTransform {
+        rotation: [
+            [rows[0][0], rows[0][1], rows[0][2]],
+            [rows[1][0], rows[1][1], rows[1][2]],
+            [rows[2][0], rows[2][1], rows[2][2]],
+        ],
+        translation_m: [rows[0][3], rows[1][3], rows[2][3]],
+    }
+}
+
+/// `this_from_imu = this_from_previous * previous_from_imu`, when both are proper transforms.
+fn chain(
+    this_from_previous: &RigidTransform,
+    previous_from_imu: &RigidTransform,
+) -> Option<RigidTransform> {
+    let t = this_from_previous.to_pose().ok()? * previous_from_imu.to_pose().ok()?;
+    Some(RigidTransform::from_pose(&t))
+}
+
+fn describe_yaml(v: &serde_yaml_ng::Value) -> String {
+    match v {
+        serde_yaml_ng::Value::Sequence(s) => format!("a list of {} items", s.len()),
+        serde_yaml_ng::Value::Mapping(_) => "a map without rows: 4, cols: 4, data".into(),
+        other => format!(
+            "`{}`",
+            serde_yaml_ng::to_string(other).unwrap_or_default().trim()
+        ),
+    }
 }
 
 /// IMU noise read from a Kalibr `imu.yaml`, flat or nested under `imu0:`.

@@ -128,19 +128,67 @@ pub struct Session {
     pub episodes: Vec<EpisodeConfig>,
 }
 
+/// Parse `session.toml` text; an error names the field (`wrists.left.tool`) and its line.
+pub fn parse_session(text: &str, path: &Path) -> Result<Session> {
+    let parse_error = |field: String, e: &toml::de::Error| {
+        let at = e.span().map(|s| s.start.min(text.len()));
+        // A map keyed by an enum (`[wrists.left]`) shows as `?` in the path: name it from the
+        // table header above the error and the key on its line.
+        let field = match at {
+            Some(at) if field.contains('?') => field_at(text, at).unwrap_or(field),
+            _ => field,
+        };
+        let line = at.map(|at| {
+            text.as_bytes()[..at]
+                .iter()
+                .filter(|&&b| b == b'\n')
+                .count()
+                + 1
+        });
+        CoreError::Parse {
+            path: path.to_path_buf(),
+            format: "TOML",
+            field: match line {
+                Some(line) if field.is_empty() || field == "." => format!("line {line}"),
+                Some(line) => format!("{field} (line {line})"),
+                None => field,
+            },
+            message: e.message().trim().to_string(),
+            fix: "see docs/conventions.md for the session.toml fields".into(),
+        }
+    };
+    let de = toml::Deserializer::parse(text).map_err(|e| parse_error(".".into(), &e))?;
+    serde_path_to_error::deserialize(de).map_err(|e| parse_error(e.path().to_string(), e.inner()))
+}
+
+/// The dotted field name at byte `at` of TOML text: the nearest `[table]` header above it and
+/// the key of its line (`wrists.left.tool`).
+fn field_at(text: &str, at: usize) -> Option<String> {
+    let before = text.get(..at)?;
+    let line_start = before.rfind('\n').map_or(0, |i| i + 1);
+    let line = text.get(line_start..)?.lines().next()?;
+    let key = line
+        .split_once('=')
+        .map(|(k, _)| k.trim().trim_matches('"'));
+    let header = before[..line_start].lines().rev().find_map(|l| {
+        let l = l.trim();
+        l.strip_prefix('[')
+            .and_then(|r| r.split_once(']'))
+            .map(|(h, _)| h.trim_matches(['[', ']']).trim().to_string())
+    });
+    match (header, key) {
+        (Some(h), Some(k)) if !k.is_empty() => Some(format!("{h}.{k}")),
+        (Some(h), _) => Some(h),
+        (None, Some(k)) if !k.is_empty() => Some(k.to_string()),
+        _ => None,
+    }
+}
+
 impl Session {
     /// Parse and validate a `session.toml`.
     pub fn load(path: &Path) -> Result<Self> {
         let text = read_text(path)?;
-        let session: Self = toml::from_str(&text).map_err(|e| CoreError::Parse {
-            path: path.to_path_buf(),
-            format: "TOML",
-            field: e
-                .span()
-                .map_or_else(|| ".".into(), |s| format!("byte {}", s.start)),
-            message: e.message().to_string(),
-            fix: "see docs/conventions.md for the session.toml fields".into(),
-        })?;
+        let session = parse_session(&text, path)?;
         session.validate().map_err(|e| e.at_path(path))?;
         Ok(session)
     }
@@ -533,10 +581,19 @@ impl LensStorage {
 
 /// Read and validate `frames.csv` (strictly increasing finite times, non-empty file names).
 pub fn read_frames_csv(path: &Path) -> Result<Vec<FrameRecord>> {
+    let file = std::fs::File::open(path).map_err(|source| CoreError::Io {
+        action: "opening",
+        path: path.to_path_buf(),
+        source,
+    })?;
+    parse_frames_csv(std::io::BufReader::new(file), path)
+}
+
+/// [`read_frames_csv`] on content from any reader; `path` names it in errors.
+pub fn parse_frames_csv<R: std::io::Read>(reader: R, path: &Path) -> Result<Vec<FrameRecord>> {
     let mut reader = csv::ReaderBuilder::new()
         .has_headers(true)
-        .from_path(path)
-        .map_err(|e| csv_error(path, &e))?;
+        .from_reader(reader);
     let headers = reader.headers().map_err(|e| csv_error(path, &e))?.clone();
     if headers.get(0) != Some("t") || headers.get(1) != Some("file") {
         return Err(CoreError::Invalid {
@@ -606,6 +663,13 @@ pub fn write_frames_csv(path: &Path, frames: &[FrameRecord]) -> Result<()> {
 }
 
 fn csv_error(path: &Path, e: &csv::Error) -> CoreError {
+    if let csv::ErrorKind::Io(io) = e.kind() {
+        return CoreError::Io {
+            action: "reading",
+            path: path.to_path_buf(),
+            source: std::io::Error::new(io.kind(), io.to_string()),
+        };
+    }
     let field = e
         .position()
         .map_or_else(|| ".".into(), |p| format!("line {}", p.line()));
@@ -707,8 +771,9 @@ impl EpisodeLayout {
     }
 
     /// Check that a camera's files are complete and consistent: `meta.json`, `imu.csv`,
-    /// `audio.wav`, and per lens a valid `frames.csv` whose first and last images exist (an
-    /// image stream) or whose rows match `video.json` and its video file (a video stream).
+    /// `audio.wav`, and per lens a valid `frames.csv` whose every image exists (an image
+    /// stream; their content is checked by `kiwi inspect`) or whose rows match `video.json` and
+    /// its video file (a video stream).
     /// Returns the number of frames per lens.
     pub fn validate_camera(&self, camera: &str) -> Result<Vec<(String, usize)>> {
         let meta = self.read_meta(camera)?;
@@ -736,7 +801,7 @@ impl EpisodeLayout {
                 counts.push((lens.clone(), frames.len()));
                 continue;
             }
-            for fr in [frames.first(), frames.last()].into_iter().flatten() {
+            for fr in &frames {
                 let p = self.frame_path(camera, lens, fr);
                 if !p.is_file() {
                     return Err(CoreError::Missing {
@@ -805,5 +870,22 @@ mod tests {
         let mut v = video();
         v.frames = 0;
         assert!(v.save(&dir.path().join(VIDEO_JSON)).is_err());
+    }
+
+    #[test]
+    fn session_toml_errors_name_the_wrist() {
+        let text = "name = \"s\"\nmap_episode = \"ep000\"\n\n[wrists.left]\nunit = \"X5-1\"\n\
+                    calibration = \"units/X5-1/2026-01-01\"\ntool = \"spoon\"\n";
+        let e = parse_session(text, Path::new("session.toml"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("wrists.left.tool (line 7)"), "{e}");
+        assert!(e.contains("spoon"), "{e}");
+        assert!(e.contains("session.toml"), "{e}");
+        // Not TOML at all: the line, never a byte offset.
+        let e = parse_session("name = \n", Path::new("session.toml"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("line 1"), "{e}");
     }
 }

@@ -8,6 +8,7 @@
 //! - [`layout`]: `session.toml` and the prepared-episode folder layout; [`video`] writes a
 //!   video-backed lens stream (through the `ffmpeg` program).
 //! - [`io`]: atomic writes, never-overwritten dated folders, hashes.
+//! - [`args`]: checks of numbers given on command lines.
 //! - [`tool`]: tool definitions; [`hardware`]: the hardware parameter file and what is
 //!   generated from it (the OpenSCAD parameters, the tool definitions).
 //! - [`audio`]: WAV decoding and resampling; [`fit`]: the robust line fit; [`rig`]: the QR-clock
@@ -17,6 +18,7 @@
 //! no command-line code, so it builds in
 //! seconds and everything else can depend on it. Conventions: `docs/conventions.md`.
 
+pub mod args;
 pub mod artifact;
 pub mod audio;
 pub mod basalt;

@@ -355,9 +355,32 @@ impl ToolDefinition {
 /// Schema version of tool calibration artifacts.
 pub const TOOL_CALIBRATION_SCHEMA_VERSION: u32 = 1;
 
-/// File name of a tool's calibration artifact beside the unit's `calibration.json`.
+/// File name of a tool's calibration artifact.
 pub fn tool_calibration_file_name(tool_name: &str, lens: &str) -> String {
     format!("tool_{tool_name}_{lens}.json")
+}
+
+/// Where a tool calibration of the unit calibrated by `calibration_json` lives by default:
+/// `units/<unit>/tools/tool_<name>_<lens>.json` when the calibration is in a dated set (a set
+/// is never written after it is created), else beside `calibration_json`.
+pub fn default_tool_calibration_path(
+    calibration_json: &Path,
+    tool_name: &str,
+    lens: &str,
+) -> std::path::PathBuf {
+    let folder = calibration_json
+        .parent()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    let file = tool_calibration_file_name(tool_name, lens);
+    match crate::io::dated_set_containing(folder) {
+        Some(set) => set
+            .parent()
+            .unwrap_or(Path::new("."))
+            .join("tools")
+            .join(file),
+        None => folder.join(file),
+    }
 }
 
 /// How well a tool calibration is supported by the frames it came from.

@@ -42,11 +42,11 @@ pub struct FuseArgs {
     #[arg(long = "pose-sigma", value_name = "SOURCE=M,RAD")]
     pub pose_sigma: Vec<String>,
     /// Huber threshold on the whitened 6-dof residual norm; 0 disables it [default: 3.55].
-    #[arg(long)]
+    #[arg(long, value_parser = kiwi_core::args::finite)]
     pub huber: Option<f64>,
     /// Keep at most this many visual factors per second and source (every frame stays a
     /// node) [default: all].
-    #[arg(long)]
+    #[arg(long, value_parser = kiwi_core::args::positive)]
     pub visual_rate: Option<f64>,
     /// Output trajectory CSV.
     #[arg(long)]

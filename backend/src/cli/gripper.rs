@@ -8,7 +8,7 @@ use kiwi_backend::gripper::calibrate::{CalibrateOptions, calibrate_tool};
 use kiwi_core::artifact::UnitCalibration;
 use kiwi_core::io::write_atomic;
 use kiwi_core::layout::ToolKind;
-use kiwi_core::tool::{ToolCalibration, ToolDefinition, tool_calibration_file_name};
+use kiwi_core::tool::{ToolCalibration, ToolDefinition, default_tool_calibration_path};
 
 /// `kiwi gripper` options.
 #[derive(Args, Debug)]
@@ -33,25 +33,26 @@ pub struct GripperArgs {
     #[arg(long)]
     pub tool: String,
     /// Output folder (default: <episode>/work/gripper/<camera>); with --calibrate, the
-    /// artifact file (default: beside --calibration).
+    /// artifact file (default: units/<unit>/tools/tool_<name>_<lens>.json beside the unit's
+    /// dated sets, or beside --calibration when that is not in a dated set).
     #[arg(long)]
     pub out: Option<PathBuf>,
     /// Print the summary as JSON.
     #[arg(long)]
     pub json: bool,
     /// Calibrate the tool instead of measuring: the dot plane from the body ArUco tag and the
-    /// hinge from the jaw dots, written as `tool_<name>_<lens>.json` beside --calibration
-    /// (or to --out FILE.json).
+    /// hinge from the jaw dots, written as `tool_<name>_<lens>.json` in the unit's `tools/`
+    /// folder (or to --out FILE.json); never into a dated calibration set.
     #[arg(long)]
     pub calibrate: bool,
     /// With --calibrate: frames searched, spread over the recording.
     #[arg(long, default_value_t = 60)]
     pub calibration_frames: usize,
-    /// With --calibrate: replace an existing tool calibration.
+    /// Replace earlier outputs (the opening files, or with --calibrate the tool calibration).
     #[arg(long)]
     pub overwrite: bool,
-    /// Tool calibration to measure with (default: `tool_<name>_<lens>.json` beside
-    /// --calibration when it exists).
+    /// Tool calibration to measure with (default: the --calibrate output for this unit, tool
+    /// and lens when it exists).
     #[arg(long, conflicts_with = "nominal")]
     pub tool_calibration: Option<PathBuf>,
     /// Measure with the tool definition's CAD geometry even if a tool calibration exists.
@@ -79,13 +80,12 @@ pub fn run_gripper(args: &GripperArgs) -> Result<()> {
         _ => bail!("give --lens DIR, or --episode DIR with --camera NAME"),
     };
     let cal = UnitCalibration::load(&args.calibration)?;
-    let beside = args
-        .calibration
-        .parent()
-        .unwrap_or_else(|| Path::new("."))
-        .join(tool_calibration_file_name(&def.name, &args.lens_name));
+    check_recorded_by(&lens_dir, &cal, &args.calibration)?;
+    let default_tool_cal =
+        default_tool_calibration_path(&args.calibration, &def.name, &args.lens_name);
     if args.calibrate {
-        let out = args.out.clone().unwrap_or(beside);
+        let out = args.out.clone().unwrap_or(default_tool_cal);
+        kiwi_core::io::ensure_outside_dated_set(&out)?;
         return calibrate(args, &def, &cal, &lens_dir, &out);
     }
     let out = match (&args.out, default_out) {
@@ -93,9 +93,32 @@ pub fn run_gripper(args: &GripperArgs) -> Result<()> {
         (None, Some(o)) => o,
         (None, None) => bail!("give --out DIR for the opening files"),
     };
+    kiwi_core::io::ensure_outside_dated_set(&out)?;
+    if !args.overwrite {
+        for name in kiwi_backend::gripper::OUTPUT_FILES {
+            let existing = out.join(name);
+            if existing.exists() {
+                bail!(
+                    "{} exists from an earlier run: outputs are never replaced silently; pass \
+                     --overwrite or choose another --out",
+                    existing.display()
+                );
+            }
+        }
+    }
+    // A tool calibration written beside calibration.json by earlier versions is still read.
+    let legacy_tool_cal =
+        args.calibration
+            .with_file_name(kiwi_core::tool::tool_calibration_file_name(
+                &def.name,
+                &args.lens_name,
+            ));
     let tool_cal = match (&args.tool_calibration, args.nominal) {
         (Some(p), _) => Some(ToolCalibration::load(p)?),
-        (None, false) if beside.exists() => Some(ToolCalibration::load(&beside)?),
+        (None, false) if default_tool_cal.exists() => {
+            Some(ToolCalibration::load(&default_tool_cal)?)
+        }
+        (None, false) if legacy_tool_cal.exists() => Some(ToolCalibration::load(&legacy_tool_cal)?),
         _ => None,
     };
     if let Some(tc) = &tool_cal {
@@ -175,6 +198,33 @@ pub fn run_gripper(args: &GripperArgs) -> Result<()> {
                  with --calibrate once)"
             ),
         }
+    }
+    Ok(())
+}
+
+/// The recording's `meta.json` (in the camera folder above the lens folder) must name the unit
+/// the calibration is of: the other wrist's calibration measures with the wrong lens.
+fn check_recorded_by(lens_dir: &Path, cal: &UnitCalibration, cal_path: &Path) -> Result<()> {
+    let Some(camera_dir) = lens_dir.parent() else {
+        return Ok(());
+    };
+    let meta_path = camera_dir.join("meta.json");
+    if !meta_path.is_file() {
+        return Ok(());
+    }
+    let (Some(root), Some(camera)) = (camera_dir.parent(), camera_dir.file_name()) else {
+        return Ok(());
+    };
+    let meta = kiwi_core::layout::EpisodeLayout::new(root).read_meta(&camera.to_string_lossy())?;
+    if meta.unit_id != cal.unit_id {
+        bail!(
+            "{} was recorded by unit {}, but --calibration {} is of unit {}: pass that unit's \
+             calibration (the other wrist's?)",
+            meta_path.display(),
+            meta.unit_id,
+            cal_path.display(),
+            cal.unit_id
+        );
     }
     Ok(())
 }

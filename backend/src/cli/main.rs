@@ -83,6 +83,21 @@ pub(crate) fn named(arg: &str, flag: &str) -> Result<(String, String)> {
         .ok_or_else(|| anyhow::anyhow!("{flag} {arg}: expected NAME=VALUE"))
 }
 
+/// The file or folder a command writes (a stage run through a session writes in the
+/// episode's work folders): never inside a dated calibration set.
+fn output(command: &Command) -> Option<&std::path::Path> {
+    match command {
+        Command::Fuse(a) => Some(&a.out),
+        Command::Metric(a) => Some(&a.out),
+        Command::Place(a) => Some(&a.out),
+        Command::Map(a) => Some(&a.out),
+        Command::Localize(a) => Some(&a.out),
+        Command::Gripper(a) => a.out.as_deref(),
+        Command::Ingest(a) => Some(&a.session),
+        Command::Run(_) | Command::Status(_) | Command::Sync(_) | Command::Inspect(_) => None,
+    }
+}
+
 fn main() -> Result<()> {
     let cli = Cli::parse();
     let level = if cli.verbose == 0 { "warn" } else { "info" };
@@ -92,6 +107,9 @@ fn main() -> Result<()> {
         .with_env_filter(filter)
         .with_writer(std::io::stderr)
         .init();
+    if let Some(out) = output(&cli.command) {
+        kiwi_core::io::ensure_outside_dated_set(out)?;
+    }
     match cli.command {
         Command::Run(args) => {
             let code = run::run_cmd(args)?;

@@ -95,10 +95,16 @@ pub fn run_sync_cmd(args: SyncArgs) -> Result<()> {
         println!("{}", serde_json::to_string_pretty(&result)?);
     } else {
         for c in &result.cameras {
-            println!(
-                "{:10} offset {:+12.6} s  drift {:+7.2} ppm  ({:?})",
-                c.name, c.offset_s, c.drift_ppm, c.status
-            );
+            match c.offset_s {
+                Some(offset) => println!(
+                    "{:10} offset {offset:+12.6} s  drift {:+7.2} ppm  ({:?})",
+                    c.name, c.drift_ppm, c.status
+                ),
+                None => println!(
+                    "{:10} not placed on the timeline ({:?}: no accepted audio match)",
+                    c.name, c.status
+                ),
+            }
         }
         for p in &result.pairs {
             let detail = p.reason.clone().unwrap_or_else(|| {
@@ -128,6 +134,33 @@ fn sync_files(
         anyhow::bail!(
             "name at least two cameras with --audio NAME=FILE (or use --session and --episode)"
         );
+    }
+    let names: Vec<String> = audio
+        .iter()
+        .map(|a| named(a, "--audio").map(|(n, _)| n))
+        .collect::<Result<_>>()?;
+    for (flag, values) in [
+        ("--av-delay", av_delay),
+        ("--calibration", calibration),
+        ("--mode", mode),
+    ] {
+        for v in values {
+            let (n, _) = named(v, flag)?;
+            if !names.contains(&n) {
+                anyhow::bail!(
+                    "{flag} {v}: there is no camera `{n}` (cameras given with --audio: {}); \
+                     check the name",
+                    names.join(", ")
+                );
+            }
+        }
+    }
+    if let Some(d) = names
+        .iter()
+        .enumerate()
+        .find_map(|(i, n)| names[..i].contains(n).then_some(n))
+    {
+        anyhow::bail!("--audio names camera `{d}` twice; give each camera once");
     }
     let mut inputs = Vec::new();
     for a in audio {

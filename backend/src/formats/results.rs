@@ -204,8 +204,12 @@ pub fn metric_from_localizations(
 
 /// Read a `metric.json`.
 pub fn read_metric(path: &Path) -> Result<MetricFile> {
-    let text = std::fs::read_to_string(path)
-        .map_err(|e| input(path, format!("cannot read: {e}; check the path")))?;
+    let text = std::fs::read_to_string(path).map_err(|e| {
+        input(
+            path,
+            format!("cannot read: {}", kiwi_core::error::describe_io(&e)),
+        )
+    })?;
     let file: MetricFile = serde_json::from_str(&text).map_err(|e| {
         input(
             path,
@@ -296,8 +300,12 @@ fn pair_up(
 
 /// Read a `placement.json`.
 pub fn read_placement(path: &Path) -> Result<PlacementFile> {
-    let text = std::fs::read_to_string(path)
-        .map_err(|e| input(path, format!("cannot read: {e}; check the path")))?;
+    let text = std::fs::read_to_string(path).map_err(|e| {
+        input(
+            path,
+            format!("cannot read: {}", kiwi_core::error::describe_io(&e)),
+        )
+    })?;
     let file: PlacementFile = serde_json::from_str(&text).map_err(|e| {
         input(
             path,

@@ -31,8 +31,12 @@ fn input(path: &Path, message: String) -> BackendError {
 }
 
 fn read(path: &Path) -> Result<String> {
-    std::fs::read_to_string(path)
-        .map_err(|e| input(path, format!("cannot read: {e}; check the path")))
+    std::fs::read_to_string(path).map_err(|e| {
+        input(
+            path,
+            format!("cannot read: {}", kiwi_core::error::describe_io(&e)),
+        )
+    })
 }
 
 /// Node timestamps from the first column (`t`) of `frames.csv`.
@@ -188,7 +192,11 @@ pub struct Localization {
 /// Read `poses.csv` (`t,status,px,py,pz,qx,qy,qz,qw,...`, status ∈ {tracked, relocalized,
 /// lost}); lost rows may leave the pose empty.
 pub fn read_localizations(path: &Path) -> Result<Vec<Localization>> {
-    let text = read(path)?;
+    parse_localizations(&read(path)?, path)
+}
+
+/// [`read_localizations`] on text; `path` names it in errors.
+pub fn parse_localizations(text: &str, path: &Path) -> Result<Vec<Localization>> {
     let mut lines = text
         .lines()
         .enumerate()

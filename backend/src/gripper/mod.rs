@@ -271,6 +271,9 @@ pub fn run_calibrated(
     )
 }
 
+/// The files [`run`] and [`run_calibrated`] write into their output folder.
+pub const OUTPUT_FILES: [&str; 4] = ["opening.csv", "opening.svg", "tool.json", "opening.json"];
+
 fn run_with(
     camera: &Camera,
     def: &ToolDefinition,

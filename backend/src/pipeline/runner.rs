@@ -8,7 +8,7 @@
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::PathBuf;
-use std::sync::{Condvar, Mutex};
+use std::sync::{Condvar, Mutex, PoisonError};
 use std::time::Instant;
 
 use serde::Serialize;
@@ -320,7 +320,9 @@ pub fn run(
     let worker = || {
         loop {
             let next = {
-                let Ok(mut s) = shared.lock() else { return };
+                // A poisoned lock still holds consistent state (nothing panics while holding
+                // it); going on keeps every waiting worker's wake-up.
+                let mut s = shared.lock().unwrap_or_else(PoisonError::into_inner);
                 loop {
                     let ready = nodes.iter().find(|n| {
                         !s.decided.contains_key(&n.id)
@@ -339,10 +341,7 @@ pub fn run(
                         }
                         None if s.running.is_empty() => break None,
                         None => {
-                            s = match wake.wait(s) {
-                                Ok(g) => g,
-                                Err(_) => return,
-                            };
+                            s = wake.wait(s).unwrap_or_else(PoisonError::into_inner);
                         }
                     }
                 }
@@ -366,7 +365,8 @@ pub fn run(
                 let reason = "internal error (a panic) in the stage; please report it".to_string();
                 (Decided::Broken(reason.clone()), Outcome::Failed { reason })
             });
-            if let Ok(mut s) = shared.lock() {
+            {
+                let mut s = shared.lock().unwrap_or_else(PoisonError::into_inner);
                 s.running.remove(&node.id);
                 s.decided.insert(node.id.clone(), decided);
                 s.reports.insert(node.id.clone(), outcome);
@@ -379,12 +379,7 @@ pub fn run(
             scope.spawn(worker);
         }
     });
-    let shared = shared.into_inner().map_err(|_| {
-        option_err(
-            ctx,
-            "internal error: the scheduler's state was poisoned".into(),
-        )
-    })?;
+    let shared = shared.into_inner().unwrap_or_else(PoisonError::into_inner);
 
     let mut stages = Vec::new();
     let mut counts: BTreeMap<String, usize> = BTreeMap::new();

@@ -77,8 +77,9 @@ pub enum CameraStatus {
 pub struct CameraClock {
     /// Camera name.
     pub name: String,
-    /// Session time at local video time 0 (s).
-    pub offset_s: f64,
+    /// Session time at local video time 0 (s); `None` when the camera is unmatched (no
+    /// accepted evidence connects it to the reference, so it has no place on the timeline).
+    pub offset_s: Option<f64>,
     /// Clock rate error relative to the reference (ppm).
     pub drift_ppm: f64,
     /// Standard error of the offset (s).
@@ -348,7 +349,8 @@ pub fn synchronise(inputs: &[SyncInput]) -> SyncResult {
         .enumerate()
         .map(|(k, input)| CameraClock {
             name: input.name.clone(),
-            offset_s: solution.params[k].0,
+            offset_s: (solution.status[k] != CameraStatus::Unmatched)
+                .then_some(solution.params[k].0),
             drift_ppm: solution.params[k].1 * 1e6,
             offset_std_s: solution.offset_std[k],
             status: solution.status[k],

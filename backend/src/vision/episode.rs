@@ -165,17 +165,44 @@ impl LensStream {
             .map_or_else(String::new, |n| n.to_string_lossy().into_owned())
     }
 
-    /// Decode frame `i`.
+    /// Check that frame `i` has the calibrated lens's size.
+    fn check_size(&self, i: usize, image: &GrayImage) -> Result<()> {
+        let (w, h) = self.camera.resolution();
+        if (image.width, image.height) == (w, h) {
+            return Ok(());
+        }
+        let file = self.frames.get(i).map_or_else(String::new, |f| f.file.clone());
+        Err(input_err(
+            &self.source.lens_dir().join(file),
+            format!(
+                "frame {i} (t = {} s) is {}×{}, but the lens is calibrated at {w}×{h}; was \
+                 the frame resized, or is the calibration for another recording mode?",
+                self.frames.get(i).map_or(f64::NAN, |f| f.t),
+                image.width,
+                image.height
+            ),
+        ))
+    }
+
+    /// Decode frame `i`, checking it has the calibrated lens's size.
     pub fn load(&self, i: usize) -> Result<GrayImage> {
-        self.source.load_gray(i)
+        let image = self.source.load_gray(i)?;
+        self.check_size(i, &image)?;
+        Ok(image)
     }
 
     /// Call `f(index, image)` for every frame in order. Images are decoded ahead on another
     /// thread while `f` runs ([`FrameSource::for_each_gray`]), so decoding overlaps the vision;
     /// `f` still sees every frame in order, so results do not depend on the thread count. Stops
     /// at the first error (decoding or `f`).
-    pub fn for_each_frame(&self, f: impl FnMut(usize, GrayImage) -> Result<()>) -> Result<()> {
-        self.source.for_each_gray(f)
+    pub fn for_each_frame(
+        &self,
+        mut f: impl FnMut(usize, GrayImage) -> Result<()>,
+    ) -> Result<()> {
+        self.source.for_each_gray(|i, image| {
+            self.check_size(i, &image)?;
+            f(i, image)
+        })
     }
 }
 
@@ -526,4 +553,129 @@ pub fn write_poses_csv(path: &Path, results: &[FrameLocalization]) -> Result<()>
     }
     kiwi_core::io::write_atomic(path, text.as_bytes())?;
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
+
+    use super::*;
+    use crate::frames::DECODE_BATCH;
+    use std::sync::mpsc;
+    use std::time::Duration;
+
+    /// A stream that hangs fails the test after this long instead of blocking the test run.
+    const HANG_TIMEOUT: Duration = Duration::from_secs(30);
+
+    /// A lens stream of `n` 32×32 frames on disk; frame `bad` (if any) has the wrong size.
+    fn stream(dir: &Path, n: usize, bad: Option<usize>) -> LensStream {
+        let lens_dir = dir.join("left").join("front");
+        std::fs::create_dir_all(lens_dir.join("frames")).unwrap();
+        let mut frames = Vec::new();
+        for i in 0..n {
+            let file = EpisodeLayout::frame_file_name(i);
+            let size = if Some(i) == bad { 48 } else { 32 };
+            image::GrayImage::from_pixel(size, size, image::Luma([i as u8]))
+                .save(lens_dir.join(&file))
+                .unwrap();
+            frames.push(FrameRecord {
+                t: i as f64 * 0.01,
+                file,
+            });
+        }
+        let camera = Camera::Kb4(
+            kiwi_core::camera::Kb4::new(32, 32, [10.0, 10.0, 15.5, 15.5, 0.0, 0.0, 0.0, 0.0])
+                .unwrap(),
+        );
+        kiwi_core::layout::write_frames_csv(&lens_dir.join("frames.csv"), &frames).unwrap();
+        let source = FrameSource::open(&lens_dir).unwrap();
+        let mask = fov_mask(&camera, FOV_MASK_MARGIN_RAD);
+        LensStream {
+            episode: dir.to_path_buf(),
+            camera_name: "left".into(),
+            lens: "front".into(),
+            camera,
+            frames,
+            source,
+            mask,
+        }
+    }
+
+    fn frame_path(s: &LensStream, i: usize) -> PathBuf {
+        s.source.lens_dir().join(&s.frames[i].file)
+    }
+
+    /// Run `f` on another thread; fail if it does not return within [`HANG_TIMEOUT`].
+    fn within_timeout<T: Send + 'static>(f: impl FnOnce() -> T + Send + 'static) -> T {
+        let (tx, rx) = mpsc::channel();
+        std::thread::spawn(move || {
+            let _ = tx.send(f());
+        });
+        rx.recv_timeout(HANG_TIMEOUT)
+            .expect("the frame stream hung: a thread waits on one that failed")
+    }
+
+    #[test]
+    fn consumer_failing_mid_stream_stops_the_decoder() {
+        // Many more frames than the channel holds, so the decoder is blocked on a full channel
+        // when the consumer fails.
+        let dir = tempfile::tempdir().unwrap();
+        let s = stream(dir.path(), 6 * DECODE_BATCH, None);
+        let (seen, result) = within_timeout(move || {
+            let mut seen = 0;
+            let r = s.for_each_frame(|i, _| {
+                seen += 1;
+                if i == 3 {
+                    Err(BackendError::Vision {
+                        context: "test".into(),
+                        message: "consumer failed".into(),
+                    })
+                } else {
+                    Ok(())
+                }
+            });
+            (seen, r)
+        });
+        assert_eq!(seen, 4);
+        assert!(result.unwrap_err().to_string().contains("consumer failed"));
+    }
+
+    #[test]
+    fn producer_failing_mid_stream_reports_the_frame() {
+        let dir = tempfile::tempdir().unwrap();
+        let bad = 2 * DECODE_BATCH + 3;
+        let s = stream(dir.path(), 6 * DECODE_BATCH, Some(bad));
+        let (seen, result) = within_timeout(move || {
+            let mut seen = 0;
+            let r = s.for_each_frame(|_, _| {
+                seen += 1;
+                Ok(())
+            });
+            (seen, r)
+        });
+        assert_eq!(
+            seen, bad,
+            "every frame before the bad one reaches the consumer"
+        );
+        let e = result.unwrap_err().to_string();
+        assert!(
+            e.contains("000035.png") && e.contains("48×48") && e.contains("32×32"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn missing_frame_mid_stream_and_slow_consumer_do_not_hang() {
+        let dir = tempfile::tempdir().unwrap();
+        let s = stream(dir.path(), 4 * DECODE_BATCH, None);
+        std::fs::remove_file(frame_path(&s, DECODE_BATCH + 1)).unwrap();
+        let result = within_timeout(move || {
+            s.for_each_frame(|_, _| {
+                std::thread::sleep(Duration::from_millis(1));
+                Ok(())
+            })
+        });
+        let e = result.unwrap_err().to_string();
+        assert!(e.contains("000017.png"), "{e}");
+    }
 }

@@ -378,13 +378,38 @@ impl VisualMap {
 
     /// Read and validate a map file.
     pub fn load(path: &Path) -> Result<Self> {
-        let text = kiwi_core::io::read_text(path)?;
-        let map: Self = serde_json::from_str(&text).map_err(|e| {
-            map_err(
-                path,
-                format!("not a valid KIWI visual map: {e}; rebuild it with `kiwi map`"),
-            )
+        let bytes = std::fs::read(path).map_err(|source| kiwi_core::CoreError::Io {
+            action: "reading",
+            path: path.to_path_buf(),
+            source,
         })?;
+        Self::from_bytes(&bytes, path)
+    }
+
+    /// Parse and validate map file content; `path` names it in errors.
+    pub fn from_bytes(bytes: &[u8], path: &Path) -> Result<Self> {
+        let rebuild = "rebuild it with `kiwi map` (or give the .kmap file `kiwi map` wrote)";
+        let Ok(text) = std::str::from_utf8(bytes) else {
+            return Err(map_err(
+                path,
+                format!(
+                    "expected a KIWI visual map (JSON text written by `kiwi map`), found binary \
+                     data; {rebuild}"
+                ),
+            ));
+        };
+        if !text.trim_start().starts_with('{') {
+            let start: String = text.trim_start().chars().take(20).collect();
+            return Err(map_err(
+                path,
+                format!(
+                    "expected a KIWI visual map (a JSON object written by `kiwi map`), found text \
+                     starting `{start}`; {rebuild}"
+                ),
+            ));
+        }
+        let map: Self = serde_json::from_str(text)
+            .map_err(|e| map_err(path, format!("not a valid KIWI visual map: {e}; {rebuild}")))?;
         map.validate(path)?;
         Ok(map)
     }

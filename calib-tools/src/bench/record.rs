@@ -19,6 +19,9 @@ pub const ENCODER_CSV: &str = "encoder.csv";
 pub const REPORT_JSON: &str = "encoder_report.json";
 /// Pause between attempts to reopen a vanished device (s): short, so a replug loses little.
 const REOPEN_PAUSE: Duration = Duration::from_millis(20);
+/// A recording whose servo has not answered once within this long fails (a wrong port or id)
+/// instead of writing an empty log; a device plugged in just after the start is still waited for.
+const STARTUP_GRACE: Duration = Duration::from_secs(3);
 /// A period whose sample is this many periods late is skipped instead of taken late: a retry
 /// after a timeout may run into the next period, a lost device makes the recorder fall behind.
 const CATCH_UP_PERIODS: f64 = 5.0;
@@ -227,6 +230,12 @@ pub fn record(
     on_tick: &mut dyn FnMut(&RecordReport),
 ) -> Result<RecordReport, BenchError> {
     config.validate()?;
+    // A regular file or a folder is never a serial device (a missing device may still be
+    // plugged in: it is waited for, up to STARTUP_GRACE).
+    if Path::new(&config.port).exists() {
+        check_serial_device(&config.port)?;
+    }
+    let created_dir = !out_dir.exists();
     std::fs::create_dir_all(out_dir).map_err(|e| BenchError::File {
         path: out_dir.to_path_buf(),
         detail: format!("cannot create the output folder: {e}"),
@@ -250,6 +259,28 @@ pub fn record(
         let tick = clock.start + period.mul_f64(k as f64);
         if tick >= end {
             break;
+        }
+        if !ever_connected && clock.start.elapsed() > STARTUP_GRACE {
+            // Nothing answered: leave nothing behind that looks like a recording.
+            drop(log);
+            let _ = std::fs::remove_file(out_dir.join(ENCODER_CSV));
+            if created_dir {
+                let _ = std::fs::remove_dir(out_dir);
+            }
+            return Err(BenchError::Open {
+                port: config.port.clone(),
+                detail: format!(
+                    "no servo answered within {:.0} s{}",
+                    STARTUP_GRACE.as_secs_f64(),
+                    if Path::new(&config.port).exists() {
+                        format!(" (check the servo id {} and --baud)", config.id)
+                    } else {
+                        "; the device does not exist (is the adapter plugged in? `ls \
+                         /dev/ttyUSB* /dev/ttyACM*`)"
+                            .to_string()
+                    }
+                ),
+            });
         }
         let now = Instant::now();
         if now < tick {
@@ -343,6 +374,37 @@ pub fn record(
         }
     })?;
     Ok(report)
+}
+
+/// The serial port must be a character device (a USB adapter, or the pseudo-terminal of
+/// `bench fake-servo`), not a missing path or a regular file.
+fn check_serial_device(port: &str) -> Result<(), BenchError> {
+    let open = |detail: String| BenchError::Open {
+        port: port.to_string(),
+        detail,
+    };
+    let meta = std::fs::metadata(port).map_err(|e| {
+        open(format!(
+            "{e}; is the adapter plugged in? (list ports with `ls /dev/ttyUSB* /dev/ttyACM*`)"
+        ))
+    })?;
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::FileTypeExt as _;
+        if !meta.file_type().is_char_device() {
+            return Err(open(format!(
+                "is a {}, not a serial device; give the adapter's device (e.g. /dev/ttyUSB0)",
+                if meta.is_dir() {
+                    "folder"
+                } else {
+                    "regular file"
+                }
+            )));
+        }
+    }
+    #[cfg(not(unix))]
+    let _ = meta;
+    Ok(())
 }
 
 /// Open the port and switch torque off (the jaw must turn the horn freely).

@@ -58,22 +58,22 @@ pub struct CamImuArgs {
     pub frame_step: usize,
     /// Detect the board from scratch in a keyframe this often (seconds) and track it in the
     /// frames between (gyro-aided prediction + sub-pixel refinement); 0 detects in every frame.
-    #[arg(long, default_value_t = super::DEFAULT_KEYFRAME_INTERVAL_S)]
+    #[arg(long, default_value_t = super::DEFAULT_KEYFRAME_INTERVAL_S, value_parser = kiwi_core::args::non_negative)]
     pub keyframe_interval: f64,
     /// Starting guess of the time shift in seconds (t_imu = t_cam + shift).
     #[arg(long, default_value_t = 0.0)]
     pub time_shift_guess: f64,
     /// Half-width of the coarse time-shift search in seconds.
-    #[arg(long, default_value_t = 0.25)]
+    #[arg(long, default_value_t = 0.25, value_parser = kiwi_core::args::positive)]
     pub search_window: f64,
     /// Knot spacing of the trajectory spline in seconds.
-    #[arg(long, default_value_t = 0.02)]
+    #[arg(long, default_value_t = 0.02, value_parser = kiwi_core::args::positive)]
     pub knot_spacing: f64,
     /// Rolling-shutter readout of a full frame in seconds (default: the calibration's mode).
-    #[arg(long)]
+    #[arg(long, value_parser = kiwi_core::args::non_negative)]
     pub readout: Option<f64>,
     /// Gravity magnitude in m/s².
-    #[arg(long, default_value_t = super::DEFAULT_GRAVITY)]
+    #[arg(long, default_value_t = super::DEFAULT_GRAVITY, value_parser = kiwi_core::args::positive)]
     pub gravity: f64,
     /// Print the per-lens JSON summary.
     #[arg(long)]

@@ -4,7 +4,9 @@ use std::fmt::Write as _;
 use std::path::PathBuf;
 
 use super::policy::Policy;
-use super::report::{latest_set, list_text, list_units, show_text};
+use super::report::{
+    clean_leftovers, latest_set, leftovers_text, list_leftovers, list_text, list_units, show_text,
+};
 use super::{CertifyOptions, CertifyReport, certify};
 use crate::error::{CalibError, Result};
 
@@ -55,11 +57,18 @@ pub enum UnitsCommand {
     },
     /// A unit's latest set in readable form.
     Show {
-        /// The unit's folder (units/ID).
+        /// The unit's folder (units/ID); a set folder (units/ID/DATE) shows that set.
         unit: PathBuf,
         /// Print JSON (the set's certification.json).
         #[arg(long)]
         json: bool,
+    },
+    /// Remove what killed certifications left behind (work folders, empty set folders);
+    /// finished sets are never touched.
+    Clean {
+        /// The units folder.
+        #[arg(default_value = "units")]
+        units: PathBuf,
     },
 }
 
@@ -165,19 +174,54 @@ pub fn run_units(cmd: &UnitsCommand) -> Result<String> {
             json: as_json,
         } => {
             let sets = list_units(units)?;
+            let leftovers = list_leftovers(units)?;
             if *as_json {
+                if !leftovers.is_empty() {
+                    eprint!("{}", leftovers_text(&leftovers));
+                }
                 serde_json::to_string_pretty(&sets)
                     .map(|s| format!("{s}\n"))
                     .map_err(|e| CalibError::Internal(format!("does not serialize: {e}")))
             } else {
-                Ok(list_text(&sets))
+                Ok(format!(
+                    "{}{}",
+                    list_text(&sets),
+                    leftovers_text(&leftovers)
+                ))
             }
+        }
+        UnitsCommand::Clean { units } => {
+            let removed = clean_leftovers(units)?;
+            let mut s = String::new();
+            for l in &removed {
+                let _ = writeln!(s, "removed {} ({})", l.path.display(), l.what);
+            }
+            if removed.is_empty() {
+                s.push_str("nothing to clean\n");
+            }
+            Ok(s)
         }
         UnitsCommand::Show {
             unit,
             json: as_json,
         } => {
-            let set = latest_set(unit)?;
+            let set = match unit.file_name().and_then(|n| n.to_str()) {
+                // A set folder: show that set.
+                Some(name) if kiwi_core::io::parse_set_name(name).is_some() => {
+                    let parent = unit.parent().unwrap_or(std::path::Path::new("."));
+                    super::report::unit_sets(parent)?
+                        .into_iter()
+                        .find(|s| s.name == name)
+                        .ok_or_else(|| CalibError::Input {
+                            path: unit.clone(),
+                            message: "is a set folder without calibration.json or \
+                                      certification.json (an unfinished or killed run?); see \
+                                      `kiwi-calib units list`"
+                                .into(),
+                        })?
+                }
+                _ => latest_set(unit)?,
+            };
             if *as_json {
                 let path = set.folder.join("certification.json");
                 kiwi_core::io::read_text(&path)

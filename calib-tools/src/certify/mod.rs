@@ -459,6 +459,12 @@ fn progress_bar(show: bool, steps: u64) -> ProgressBar {
 /// Certify a unit: run every step, write the set, return the verdict.
 pub fn certify(o: &CertifyOptions) -> Result<CertifyReport> {
     let started = Instant::now();
+    // The options first: a wrong --date fails before any capture is read.
+    let date = o.date.clone().unwrap_or_else(utc_today);
+    kiwi_core::artifact::validate_date(&date).map_err(|e| CalibError::Input {
+        path: o.captures.clone(),
+        message: format!("--date: {e}"),
+    })?;
     let info = UnitInfo::load(&o.captures.join("unit.toml"))?;
     if info.unit_id != o.unit_id {
         return Err(CalibError::Input {
@@ -479,8 +485,6 @@ pub fn certify(o: &CertifyOptions) -> Result<CertifyReport> {
             ),
         });
     }
-    let date = o.date.clone().unwrap_or_else(utc_today);
-    kiwi_core::artifact::validate_date(&date)?;
     let previous = match &o.previous {
         Some(dir) => {
             let path = if dir.is_dir() {
@@ -496,23 +500,28 @@ pub fn certify(o: &CertifyOptions) -> Result<CertifyReport> {
     // Claim the dated folder first (atomic: a concurrent run gets the next name), assemble the
     // set beside it, and rename it onto the empty claimed folder at the end.
     let folder = kiwi_core::io::create_dated_dir(&unit_root, &date)?;
-    let work = unit_root.join(format!(
-        ".certify-{}",
-        folder
-            .file_name()
-            .map_or_else(String::new, |n| n.to_string_lossy().into_owned())
-    ));
-    let result = std::fs::create_dir_all(work.join("report"))
-        .map_err(|e| io_error("creating", &work, e))
-        .and_then(|()| run_steps(o, &info, &date, &work, &folder, previous.as_ref(), started));
+    let set_name = folder
+        .file_name()
+        .map_or_else(String::new, |n| n.to_string_lossy().into_owned());
+    let result = report::create_work_dir(&unit_root, &set_name).and_then(|work| {
+        let steps = std::fs::create_dir(work.join("report"))
+            .map_err(|e| io_error("creating", &work, e))
+            .and_then(|()| run_steps(o, &info, &date, &work, &folder, previous.as_ref(), started));
+        match steps {
+            Ok(report) => Ok((work, report)),
+            Err(e) => {
+                let _ = std::fs::remove_dir_all(&work);
+                Err(e)
+            }
+        }
+    });
     match result {
-        Ok(mut report) => {
+        Ok((work, mut report)) => {
             std::fs::rename(&work, &folder).map_err(|e| io_error("renaming", &work, e))?;
             report.seconds = started.elapsed().as_secs_f64();
             Ok(report)
         }
         Err(e) => {
-            let _ = std::fs::remove_dir_all(&work);
             let _ = std::fs::remove_dir(&folder);
             Err(e)
         }

@@ -298,13 +298,134 @@ pub struct SetSummary {
 
 /// Sort key of a set folder name: date, then the same-day counter.
 fn set_key(name: &str) -> Option<(String, u32)> {
-    let date = name.get(..10)?;
-    kiwi_core::artifact::validate_date(date).ok()?;
-    let n = match name.get(10..) {
-        Some("") | None => 1,
-        Some(rest) => rest.strip_prefix('-')?.parse().ok()?,
+    kiwi_core::io::parse_set_name(name)
+}
+
+/// Prefix of a certification's work folder (`.certify-<set>-<pid>` beside the sets).
+const WORK_PREFIX: &str = ".certify-";
+
+/// Create a fresh work folder for the set `set_name` of the unit folder `unit_root`:
+/// `.certify-<set>-<pid>`, created exclusively. A folder of that name can only be the
+/// leftover of a killed run whose process id this run now has, so it is removed first:
+/// nothing of an earlier run ever ends up in a new set.
+pub fn create_work_dir(unit_root: &Path, set_name: &str) -> Result<PathBuf> {
+    let work = unit_root.join(format!("{WORK_PREFIX}{set_name}-{}", std::process::id()));
+    if work.exists() {
+        std::fs::remove_dir_all(&work).map_err(|e| CalibError::Input {
+            path: work.clone(),
+            message: format!("cannot remove the leftover work folder of a killed run: {e}"),
+        })?;
+    }
+    std::fs::create_dir(&work).map_err(|e| CalibError::Input {
+        path: work.clone(),
+        message: format!("cannot create the work folder: {e}"),
+    })?;
+    Ok(work)
+}
+
+/// Something a killed certification left behind in a unit folder.
+#[derive(Debug, Clone, Serialize)]
+pub struct Leftover {
+    /// The folder.
+    pub path: PathBuf,
+    /// What it is.
+    pub what: String,
+}
+
+/// Whether a process with this id runs (Linux `/proc`); unknown elsewhere counts as running,
+/// so nothing of a live run is ever reported as a leftover or removed.
+fn process_alive(pid: u32) -> bool {
+    let proc = Path::new("/proc");
+    !proc.is_dir() || proc.join(pid.to_string()).exists()
+}
+
+/// The work folders and empty claimed set folders that killed certifications left in the unit
+/// folder `unit_dir` (a run still in progress is not reported).
+pub fn unit_leftovers(unit_dir: &Path) -> Vec<Leftover> {
+    let Ok(entries) = std::fs::read_dir(unit_dir) else {
+        return Vec::new();
     };
-    Some((date.to_string(), n))
+    let names: Vec<String> = entries
+        .filter_map(std::result::Result::ok)
+        .filter(|e| e.path().is_dir())
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .collect();
+    // The set each running certification claimed.
+    let running: Vec<&str> = names
+        .iter()
+        .filter_map(|n| n.strip_prefix(WORK_PREFIX))
+        .filter_map(|rest| {
+            let (set, pid) = rest.rsplit_once('-')?;
+            (set_key(set).is_some() && process_alive(pid.parse().ok()?)).then_some(set)
+        })
+        .collect();
+    let mut out = Vec::new();
+    for name in &names {
+        let path = unit_dir.join(name);
+        if let Some(rest) = name.strip_prefix(WORK_PREFIX) {
+            let live = rest.rsplit_once('-').is_some_and(|(set, pid)| {
+                set_key(set).is_some() && pid.parse().is_ok_and(process_alive)
+            });
+            if !live {
+                out.push(Leftover {
+                    path,
+                    what: "work folder of a certification that was killed".into(),
+                });
+            }
+        } else if set_key(name).is_some()
+            && !running.contains(&name.as_str())
+            && std::fs::read_dir(&path).is_ok_and(|mut d| d.next().is_none())
+        {
+            out.push(Leftover {
+                path,
+                what: "empty set folder claimed by a certification that was killed".into(),
+            });
+        }
+    }
+    out.sort_by(|a, b| a.path.cmp(&b.path));
+    out
+}
+
+/// Every leftover of killed certifications under `units/`.
+pub fn list_leftovers(units_dir: &Path) -> Result<Vec<Leftover>> {
+    let entries = std::fs::read_dir(units_dir).map_err(|e| CalibError::Input {
+        path: units_dir.to_path_buf(),
+        message: format!("cannot list units: {e}; give the units/ folder certify wrote into"),
+    })?;
+    let mut dirs: Vec<PathBuf> = entries
+        .filter_map(std::result::Result::ok)
+        .map(|e| e.path())
+        .filter(|p| p.is_dir())
+        .collect();
+    dirs.sort();
+    Ok(dirs.iter().flat_map(|d| unit_leftovers(d)).collect())
+}
+
+/// Remove the leftovers of killed certifications under `units/`; returns what was removed.
+pub fn clean_leftovers(units_dir: &Path) -> Result<Vec<Leftover>> {
+    let leftovers = list_leftovers(units_dir)?;
+    for l in &leftovers {
+        std::fs::remove_dir_all(&l.path).map_err(|e| CalibError::Input {
+            path: l.path.clone(),
+            message: format!("cannot remove: {e}"),
+        })?;
+    }
+    Ok(leftovers)
+}
+
+/// The readable lines about leftovers, for `units list` (empty when there are none).
+pub fn leftovers_text(leftovers: &[Leftover]) -> String {
+    let mut s = String::new();
+    for l in leftovers {
+        let _ = writeln!(s, "leftover: {} ({})", l.path.display(), l.what);
+    }
+    if !leftovers.is_empty() {
+        let _ = writeln!(
+            s,
+            "remove them with `kiwi-calib units clean` (no set is touched)"
+        );
+    }
+    s
 }
 
 /// Every finished set of one unit folder (`units/<id>`), oldest first.
