@@ -433,6 +433,10 @@ const ROTATION_WINDOW_S: f64 = 0.02;
 const ROTATION_SCALE_MAX_SE: f64 = 0.05;
 /// A trusted rotation scale outside this range means gyro and accelerometer disagree.
 const ROTATION_SCALE_RANGE: (f64, f64) = (0.5, 2.0);
+/// The rotation-consistency fit needs the log to turn: below this RMS rate (rad/s, about
+/// 6 °/s) of the windowed gyro, its regressor is gyro noise and the fitted scale shrinks
+/// towards zero whatever the units (a resting or slowly drifting log).
+const ROTATION_MIN_RMS_RAD_S: f64 = 0.1;
 /// Degrees per radian: a gyro in deg/s reads this many times the rad/s value.
 const DEG_PER_RAD: f64 = 180.0 / std::f64::consts::PI;
 
@@ -635,7 +639,8 @@ pub fn check_imu_log(
             syy += y.dot(&y);
         }
         let count = 3 * (m - 2);
-        if sxx > 0.0 && count > 3 {
+        let rms_rate = (means.iter().map(|(g, _)| g.norm_squared()).sum::<f64>() / m as f64).sqrt();
+        if sxx > 0.0 && count > 3 && rms_rate >= ROTATION_MIN_RMS_RAD_S {
             let s = sxy / sxx;
             let residual = ((syy - s * sxy) / (count - 1) as f64).max(0.0);
             let se = (residual / sxx).sqrt();
