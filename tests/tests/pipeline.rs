@@ -596,6 +596,7 @@ fn a_session_ingested_from_camera_mp4_files_reconstructs_like_the_png_session() 
     lock.unlock().unwrap();
 
     let (a_png, a_mp4) = (alignment(&png), alignment(&mp4_session));
+    let mut failures = Vec::new();
     let mut rows = Vec::new();
     for episode in ["ep001", "ep002", "ep003"] {
         for camera in ["left", "right"] {
@@ -613,10 +614,12 @@ fn a_session_ingested_from_camera_mp4_files_reconstructs_like_the_png_session() 
                 mm * 1e3,
                 mp * 1e3
             );
-            assert_eq!(
-                p.frames, m.frames,
-                "{episode} {camera}: every frame comes out"
-            );
+            if p.frames != m.frames {
+                failures.push(format!(
+                    "{episode} {camera}: {} frames out of the MP4 session, {} of the PNG one",
+                    m.frames, p.frames
+                ));
+            }
             rows.push((pm, mm));
         }
     }
@@ -628,11 +631,13 @@ fn a_session_ingested_from_camera_mp4_files_reconstructs_like_the_png_session() 
         mp4_mean * 1e3,
         (mp4_mean / png_mean - 1.0) * 100.0
     );
-    assert!(
-        mp4_mean <= png_mean * (1.0 + MP4_WORSE_FRACTION),
-        "the MP4 path is more than {} % worse",
-        MP4_WORSE_FRACTION * 100.0
-    );
+    if mp4_mean > png_mean * (1.0 + MP4_WORSE_FRACTION) {
+        failures.push(format!(
+            "the MP4 path is more than {} % worse",
+            MP4_WORSE_FRACTION * 100.0
+        ));
+    }
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
 }
 
 /// The generic MP4 path may cost at most this fraction of the PNG session's mean tool-tip
