@@ -252,21 +252,7 @@ impl FrameSource {
 
     /// Check that `indices` name frames of this stream in strictly increasing order.
     pub fn check_indices(&self, indices: &[usize]) -> Result<()> {
-        let increasing = indices.windows(2).all(|w| w[0] < w[1]);
-        match indices.last() {
-            Some(&last) if last >= self.frames.len() => Err(input_err(
-                &self.lens_dir,
-                format!(
-                    "frame {last} asked for, the stream has {} frames",
-                    self.frames.len()
-                ),
-            )),
-            _ if !increasing => Err(input_err(
-                &self.lens_dir,
-                "frames asked for out of order: expected strictly increasing indices".into(),
-            )),
-            _ => Ok(()),
-        }
+        check_increasing_below(&self.lens_dir, indices, self.frames.len())
     }
 
     fn for_each_decoded<T: Send>(
@@ -379,6 +365,23 @@ impl FrameSource {
             }
         });
         out
+    }
+}
+
+/// Check that `indices` are strictly increasing and below `len` (frames of the stream in
+/// `lens_dir`, named in the error).
+pub fn check_increasing_below(lens_dir: &Path, indices: &[usize], len: usize) -> Result<()> {
+    let increasing = indices.windows(2).all(|w| w[0] < w[1]);
+    match indices.last() {
+        Some(&last) if last >= len => Err(input_err(
+            lens_dir,
+            format!("frame {last} asked for, the stream has {len} frames"),
+        )),
+        _ if !increasing => Err(input_err(
+            lens_dir,
+            "frames asked for out of order: expected strictly increasing indices".into(),
+        )),
+        _ => Ok(()),
     }
 }
 

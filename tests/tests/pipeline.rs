@@ -497,19 +497,15 @@ fn bad_input_gives_a_named_cause_and_the_other_episodes_finish() {
 /// camera or an exporting app writes them; the IMU beside it as a CSV in SI units.
 fn camera_mp4(episode: &Path, camera: &str, out: &Path) -> (PathBuf, PathBuf) {
     let dir = episode.join(camera);
-    let meta: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(dir.join("meta.json")).unwrap()).unwrap();
-    let lenses: Vec<String> = meta["lenses"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|l| l.as_str().unwrap().to_string())
-        .collect();
+    let meta = kiwi_core::layout::EpisodeLayout::new(episode)
+        .read_meta(camera)
+        .unwrap();
+    let lenses = meta.lenses;
     // The simulator's frames are at k / fps from 0: an exact rational rate keeps them there.
-    let rate = if (meta["fps"].as_f64().unwrap() - 29.97).abs() < 1e-6 {
+    let rate = if (meta.fps - 29.97).abs() < 1e-6 {
         "30000/1001".to_string()
     } else {
-        meta["fps"].as_f64().unwrap().to_string()
+        meta.fps.to_string()
     };
     let mp4 = out.join(format!("{camera}.mp4"));
     let mut cmd = std::process::Command::new("ffmpeg");

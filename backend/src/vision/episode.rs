@@ -165,16 +165,7 @@ impl LensStream {
     /// Keep only the frames `keep` (positions in the current [`LensStream::frames`], strictly
     /// increasing): a window or a subsampling of the stream.
     pub fn select(&mut self, keep: &[usize]) -> Result<()> {
-        let increasing = keep.windows(2).all(|w| w[0] < w[1]);
-        if !increasing || keep.last().is_some_and(|&k| k >= self.frames.len()) {
-            return Err(input_err(
-                self.source.lens_dir(),
-                format!(
-                    "frames to keep: expected strictly increasing positions below {}",
-                    self.frames.len()
-                ),
-            ));
-        }
+        crate::frames::check_increasing_below(self.source.lens_dir(), keep, self.frames.len())?;
         self.frames = keep.iter().map(|&k| self.frames[k].clone()).collect();
         self.source_index = keep.iter().map(|&k| self.source_index[k]).collect();
         Ok(())
