@@ -15,7 +15,9 @@
 //! sessions once into this folder and reuse them), `KIWI_RELOC_DIAGNOSE` (frames, default 0),
 //! `KIWI_RELOC_BASELINE=1` (the localizer as it was before rectified descriptors: raw-image
 //! descriptors in map and query, a 45-inlier hypothesis, one view-blind densification round,
-//! relocalization every 4th frame after two failures, no view-support rule).
+//! relocalization every 4th frame after two failures, no view-support rule, no whole-map
+//! attempt), `KIWI_RELOC_MAP_CANDIDATES` (look-alike landmarks per keypoint of the whole-map
+//! attempt; 0 turns it off).
 
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
@@ -109,7 +111,12 @@ fn main() {
         options.relocalization_guided_rounds = 2;
         options.relocalization_eager_s = 0.0;
         options.min_view_support = 0.0;
+        options.relocalization_map_candidates = 0;
+        options.relocalization_guided_keyframes = options.guided_keyframes;
         println!("baseline: {options:?}");
+    }
+    if let Ok(k) = std::env::var("KIWI_RELOC_MAP_CANDIDATES") {
+        options.relocalization_map_candidates = k.parse().unwrap();
     }
     for spec in rooms.split(',') {
         let (kind, seed) = spec.split_once(':').unwrap();
