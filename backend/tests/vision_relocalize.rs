@@ -16,9 +16,9 @@
 //! it today (a photo room, the studio and the divided room; with the unseen-part test 3 min of
 //! CPU). The ten rooms and seeds
 //! of the acceptance are `every_room_kind_meets_the_relocalization_acceptance`, ignored in
-//! `make test` (~5 min, and it fails today: the kitchen and the workshop are never relocalized
-//! and three more rooms miss the 99 % or the first second, see docs/vision.md); zero poses over
-//! 5 cm held in all ten. A third test localizes a sweep beyond the divided room's partition (a
+//! `make test` (~10 min, and it fails today: the kitchen relocalizes from its first frame but
+//! loses tracking later, 87-94 % localized; the workshop's 320 px maps hold ~430 landmarks and
+//! one of them is 10 % off the truth, so its poses are too; see docs/vision.md). A third test localizes a sweep beyond the divided room's partition (a
 //! part of the room the map never saw, papered with the same photos) in the table side's map:
 //! it must be reported lost, not placed.
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
@@ -180,7 +180,7 @@ fn revisits_relocalize_in_the_rooms_that_meet_the_acceptance() {
 }
 
 #[test]
-#[ignore = "the acceptance over ten rooms: ~5 min, and the kitchen and workshop fail today"]
+#[ignore = "the acceptance over ten rooms: ~10 min, and the kitchen and workshop fail it today"]
 fn every_room_kind_meets_the_relocalization_acceptance() {
     run_cases(&CASES);
 }
