@@ -1230,7 +1230,7 @@ impl Localizer {
                 attempt,
                 (k, f64::NAN, &matches),
                 feats,
-                trace.as_deref_mut(),
+                trace,
                 &mut best,
                 &mut best_rejected,
                 &mut last_reason,
