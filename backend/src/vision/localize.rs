@@ -137,6 +137,10 @@ pub struct LocalizerOptions {
     pub relocalization_map_candidates: usize,
     /// RANSAC iterations of the whole-map hypothesis (its share of right matches is low).
     pub relocalization_map_iterations: usize,
+    /// Whole-map attempts per run of frames without a pose: after this many failed, only the
+    /// candidate windows are tried until a pose is found (a view the map never saw would pay
+    /// the whole-map matching on every attempt).
+    pub relocalization_map_attempts: usize,
     /// See `min_view_support`.
     pub support_grid: u32,
     /// See `min_view_support`.
@@ -197,6 +201,9 @@ pub struct LocalizerOptions {
     pub guided_max_distance: u32,
     /// RANSAC seed (mixed with the frame index).
     pub seed: u64,
+    /// Localize in a map whose own check found it not trustworthy ([`VisualMap::quality`]);
+    /// off: every frame is lost with the map's reason (a wrong map gives wrong poses).
+    pub serve_untrusted_map: bool,
 }
 
 impl Default for LocalizerOptions {
@@ -227,6 +234,10 @@ impl Default for LocalizerOptions {
             // 10 % right matches need ~9 000 P3P draws for 99.99 %; adaptive stopping ends
             // far sooner once a hypothesis with many inliers is found.
             relocalization_map_iterations: 10_000,
+            // A third of the eager first second at 30 Hz: the kitchen's revisit found the map on
+            // its first whole-map attempt; later attempts of a long lost run rarely succeed
+            // where the first ones failed, and each costs ~4 window attempts.
+            relocalization_map_attempts: 10,
             // 8 × 8 cells of 120 px at 960 px: a photo or a tile panel covers a few of them.
             support_grid: 8,
             // A cell with fewer predicted landmarks is too thin to expect an inlier in.
@@ -277,6 +288,7 @@ impl Default for LocalizerOptions {
             // ORB-SLAM's "low" threshold for a guided (position-constrained) match.
             guided_max_distance: 50,
             seed: 0x4C4F_4341,
+            serve_untrusted_map: false,
         }
     }
 }
@@ -440,6 +452,10 @@ pub struct Localizer {
     /// Relocalization attempts so far and their wall time (s): the cost reported per stream.
     attempts: usize,
     attempt_seconds: f64,
+    /// Why the map serves no poses (its own check refused it), if so.
+    refused: Option<String>,
+    /// Whole-map attempts in the current run of frames without a pose.
+    map_attempts_in_run: usize,
 }
 
 fn vision_err(message: String) -> BackendError {
@@ -539,6 +555,12 @@ impl Localizer {
             lost_since: None,
             attempts: 0,
             attempt_seconds: 0.0,
+            refused: map
+                .quality
+                .as_ref()
+                .filter(|q| !q.trustworthy && !options.serve_untrusted_map)
+                .map(|q| q.reason.clone()),
+            map_attempts_in_run: 0,
         })
     }
 
@@ -827,6 +849,16 @@ impl Localizer {
                 image.width, image.height
             )));
         }
+        if let Some(why) = &self.refused {
+            return Ok(FrameLocalization::lost(
+                frame,
+                t,
+                0,
+                format!(
+                    "the map is not trustworthy: {why}; rebuild it from a mapping episode with more texture or slower motion"
+                ),
+            ));
+        }
         let pyramid = KltPyramid::new(image, &self.options.klt)?;
         let mut features: Option<FrameFeatures> = None;
         let mut reason = String::new();
@@ -895,7 +927,8 @@ impl Localizer {
             None => self.orb.extract(image, Some(&self.mask), &self.camera)?,
         };
         let started = std::time::Instant::now();
-        let relocalized = self.relocalize(frame, &feats, None);
+        let whole_map = self.map_attempts_in_run < self.options.relocalization_map_attempts;
+        let relocalized = self.relocalize(frame, &feats, whole_map, None);
         self.attempts += 1;
         self.attempt_seconds += started.elapsed().as_secs_f64();
         self.failed_run = if relocalized.is_ok() {
@@ -905,6 +938,9 @@ impl Localizer {
         };
         if relocalized.is_ok() {
             self.lost_since = None;
+            self.map_attempts_in_run = 0;
+        } else if whole_map {
+            self.map_attempts_in_run += 1;
         }
         match relocalized {
             Ok(e) => Ok(self.finish(
@@ -1129,7 +1165,7 @@ impl Localizer {
     ) -> Result<RelocalizationTrace> {
         let features = self.orb.extract(image, Some(&self.mask), &self.camera)?;
         let mut candidates = Vec::new();
-        let _ = self.relocalize(frame, &features, Some(&mut candidates));
+        let _ = self.relocalize(frame, &features, true, Some(&mut candidates));
         Ok(RelocalizationTrace {
             features,
             candidates,
@@ -1139,11 +1175,13 @@ impl Localizer {
     /// Global relocalization by place recognition; `Err((reason, inliers))` when rejected.
     /// Each candidate tried is appended to `trace` when given. When no candidate window gives
     /// an accepted pose, the query is matched once against the whole map, keeping a few
-    /// look-alike landmarks per keypoint (`relocalization_map_candidates`), and RANSAC chooses.
+    /// look-alike landmarks per keypoint (`relocalization_map_candidates`), and RANSAC chooses
+    /// (only when `whole_map` is set).
     fn relocalize(
         &self,
         frame: u32,
         feats: &FrameFeatures,
+        whole_map: bool,
         mut trace: Option<&mut Vec<CandidateTrace>>,
     ) -> std::result::Result<Estimate, (String, usize)> {
         if feats.keypoints.len() < self.options.min_inliers_relocalization {
@@ -1201,7 +1239,7 @@ impl Localizer {
                 &mut last_reason,
             );
         }
-        if best.is_none() && self.options.relocalization_map_candidates > 0 {
+        if best.is_none() && whole_map && self.options.relocalization_map_candidates > 0 {
             let all: Vec<u32> = (0..self.positions.len() as u32).collect();
             let (train, groups) = self.train_set(&all, 0..=n_kf.saturating_sub(1));
             let matches = match_descriptor_groups_ambiguous(
