@@ -17,8 +17,8 @@
 //! CPU). The ten rooms and seeds
 //! of the acceptance are `every_room_kind_meets_the_relocalization_acceptance`, ignored in
 //! `make test` (~10 min, and it fails today: the kitchen relocalizes from its first frame but
-//! loses tracking later, 87-94 % localized; the workshop's 320 px maps hold ~430 landmarks and
-//! one of them is 10 % off the truth, so its poses are too; see docs/vision.md). A third test localizes a sweep beyond the divided room's partition (a
+//! loses tracking later, 87-94 % localized; the workshop's 320 px maps drift, 1.4-11 % off the
+//! truth, and are refused by their own check, so their queries are lost; see docs/vision.md). A third test localizes a sweep beyond the divided room's partition (a
 //! part of the room the map never saw, papered with the same photos) in the table side's map:
 //! it must be reported lost, not placed. A fourth maps a texture-poor workshop whose map drifts
 //! (10 % of the path): the map's own check must refuse it and the query be lost, saying why.

@@ -58,21 +58,6 @@ pub struct MapQuality {
     pub keyframes_per_frame: f64,
 }
 
-impl MapQuality {
-    /// A verdict of "trustworthy" for a map that was not checked (maps built in memory).
-    pub fn unchecked() -> Self {
-        Self {
-            trustworthy: true,
-            reason: String::new(),
-            direction_disagreement: None,
-            reversed_coverage: 0.0,
-            landmarks_per_keyframe: 0.0,
-            shared_landmarks_p10: 0.0,
-            keyframes_per_frame: 0.0,
-        }
-    }
-}
-
 /// Median keyframe-to-landmark distance of a reconstruction (its units); `None` without any.
 fn median_depth(recon: &Reconstruction) -> Option<f64> {
     let mut d: Vec<f64> = Vec::new();
