@@ -16,11 +16,12 @@
 //! it today (a photo room, the studio and the divided room; with the unseen-part test 3 min of
 //! CPU). The ten rooms and seeds
 //! of the acceptance are `every_room_kind_meets_the_relocalization_acceptance`, ignored in
-//! `make test` (~5 min, and it fails today: the kitchen and the workshop are never relocalized
-//! and three more rooms miss the 99 % or the first second, see docs/vision.md); zero poses over
-//! 5 cm held in all ten. A third test localizes a sweep beyond the divided room's partition (a
+//! `make test` (~10 min, and it fails today: the kitchen relocalizes from its first frame but
+//! loses tracking later, 87-94 % localized; the workshop's 320 px maps drift, 1.4-11 % off the
+//! truth, and are refused by their own check, so their queries are lost; see docs/vision.md). A third test localizes a sweep beyond the divided room's partition (a
 //! part of the room the map never saw, papered with the same photos) in the table side's map:
-//! it must be reported lost, not placed.
+//! it must be reported lost, not placed. A fourth maps a texture-poor workshop whose map drifts
+//! (10 % of the path): the map's own check must refuse it and the query be lost, saying why.
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
 mod common;
@@ -104,6 +105,13 @@ fn run_case(
     );
     let stream = LensStream::open(&mapping, camera, lens, None, None).unwrap();
     let (map, summary) = build_map(&stream, &mut |_, _| {}).unwrap();
+    let mut failures = Vec::new();
+    if !summary.quality.trustworthy {
+        failures.push(format!(
+            "{tag}: the map is refused by its own check: {}",
+            summary.quality.reason
+        ));
+    }
     let alignment = Alignment::new(&map, &truth_poses(&mapping, camera, lens));
     let qstream = LensStream::open(&query, camera, lens, None, None).unwrap();
     let qtruth = truth_poses(&query, camera, lens);
@@ -123,10 +131,14 @@ fn run_case(
     e.sort_by(f64::total_cmp);
     let over = e.iter().filter(|&&x| x > MAX_ERROR_M).count();
     let line = format!(
-        "{tag}: map {} keyframes, {} landmarks, {} loops; query {}/{} localized ({:.1} %, {} relocalized), first pose after {}, error median {:.1} mm, worst {:.1} mm, {over} over 5 cm; relocalization {} attempts, {:.0} ms each",
+        "{tag}: map {} keyframes, {} landmarks, {} loops, forward/reversed disagreement {}; query {}/{} localized ({:.1} %, {} relocalized), first pose after {}, error median {:.1} mm, worst {:.1} mm, {over} over 5 cm; relocalization {} attempts, {:.0} ms each",
         summary.keyframes,
         summary.landmarks,
         summary.loops_closed,
+        summary
+            .quality
+            .direction_disagreement
+            .map_or("-".into(), |d| format!("{:.2} %", 100.0 * d)),
         s.localized,
         s.frames,
         100.0 * s.localized_fraction,
@@ -138,7 +150,6 @@ fn run_case(
         s.relocalization_attempts,
         s.relocalization_ms_per_attempt,
     );
-    let mut failures = Vec::new();
     if over > 0 {
         failures.push(format!("{tag}: {over} accepted poses over 5 cm"));
     }
@@ -180,7 +191,7 @@ fn revisits_relocalize_in_the_rooms_that_meet_the_acceptance() {
 }
 
 #[test]
-#[ignore = "the acceptance over ten rooms: ~5 min, and the kitchen and workshop fail today"]
+#[ignore = "the acceptance over ten rooms: ~10 min, and the kitchen and workshop fail it today"]
 fn every_room_kind_meets_the_relocalization_acceptance() {
     run_cases(&CASES);
 }
@@ -226,4 +237,55 @@ fn a_part_of_the_room_the_map_never_saw_is_reported_lost() {
     );
     assert_lost_frames_say_why(&results);
     assert!(s.localized_fraction <= MAX_LOCALIZED, "{s:?}");
+}
+
+#[test]
+fn a_map_that_drifted_is_refused_and_serves_no_pose() {
+    // The texture-poor workshop's scan of seed 2, left rear lens: 155 keyframes on ~60
+    // landmarks each, keyframe ATE 100 mm = 10.3 % of the path against the truth, and its
+    // revisit was localized 197-214 mm off before the check. The map's own check (forward
+    // against reversed mapping: the reversed run poses only 29 % of the keyframes) must refuse
+    // it, and the query must be lost on every frame, saying why.
+    let dir = tempfile::tempdir().unwrap();
+    let lens_spec = "left/rear";
+    let (camera, lens) = lens_spec.split_once('/').unwrap();
+    let mapping = room_session(
+        dir.path(),
+        "workshop-scan",
+        RoomKind::Workshop,
+        2,
+        RESOLUTION,
+        lens_spec,
+        SCAN,
+    );
+    let query = room_session(
+        dir.path(),
+        "workshop-revisit",
+        RoomKind::Workshop,
+        2,
+        RESOLUTION,
+        lens_spec,
+        REVISIT,
+    );
+    let stream = LensStream::open(&mapping, camera, lens, None, None).unwrap();
+    let (map, summary) = build_map(&stream, &mut |_, _| {}).unwrap();
+    eprintln!("workshop 2 map quality: {:?}", summary.quality);
+    assert!(!summary.quality.trustworthy, "{:?}", summary.quality);
+    assert!(
+        summary.quality.reason.contains("reverse"),
+        "{:?}",
+        summary.quality
+    );
+    assert_eq!(map.quality.as_ref(), Some(&summary.quality));
+    let qstream = LensStream::open(&query, camera, lens, None, None).unwrap();
+    let (results, s) =
+        localize_stream(&map, &qstream, &LocalizerOptions::default(), &mut |_, _| {}).unwrap();
+    assert_eq!(s.localized, 0, "{s:?}");
+    assert!(
+        results
+            .iter()
+            .all(|r| r.reason.starts_with("the map is not trustworthy: ")),
+        "{:?}",
+        results.first()
+    );
 }

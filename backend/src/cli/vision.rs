@@ -143,6 +143,21 @@ pub fn run_map(a: &MapArgs) -> Result<()> {
                 .map_or_else(String::new, |f| format!(" (tracking lost at frame {f})")),
             summary.seconds
         );
+        let q = &summary.quality;
+        if q.trustworthy {
+            println!(
+                "quality: trustworthy (forward and reversed mapping agree within {})",
+                q.direction_disagreement.map_or("-".into(), |d| format!(
+                    "{:.2} % of the scene depth",
+                    100.0 * d
+                ))
+            );
+        } else {
+            println!(
+                "quality: NOT trustworthy, no pose will be localized in this map: {}",
+                q.reason
+            );
+        }
     }
     Ok(())
 }

@@ -61,9 +61,9 @@ fn input(path: &Path, message: String) -> BackendError {
 pub fn version(kind: &StageKind) -> &'static str {
     match kind {
         StageKind::Sync { .. } => "sync-2",
-        StageKind::Map { .. } => "map-1",
+        StageKind::Map { .. } => "map-2",
         StageKind::Tool { .. } => "tool-1",
-        StageKind::Localize { .. } => "localize-2",
+        StageKind::Localize { .. } => "localize-3",
         StageKind::Metric { .. } => "metric-1",
         StageKind::Placement { .. } => "placement-1",
         StageKind::Observations { .. } => "observations-2",

@@ -30,6 +30,7 @@ use crate::vision::localize::{
 use crate::vision::loop_closure::{LoopOptions, LoopReport, close_loops};
 use crate::vision::map::VisualMap;
 use crate::vision::mapping::{MapperOptions, global_adjustment, reconstruct};
+use crate::vision::quality::{MapQuality, assess};
 
 /// Angle of one pixel at the centre of the 960 px X5 lens the mapper's defaults are tuned for.
 const REFERENCE_PIXEL_ANGLE_RAD: f64 = 1.0 / 290.0;
@@ -258,6 +259,9 @@ pub struct MapSummary {
     pub loops_closed: usize,
     /// Landmarks fused into an older landmark by loop closure.
     pub landmarks_merged: usize,
+    /// The mapper's own consistency check (forward against reversed mapping) and verdict: a map
+    /// that is not trustworthy serves no poses.
+    pub quality: MapQuality,
     /// Wall time (s).
     pub seconds: f64,
 }
@@ -293,12 +297,24 @@ pub fn build_map_with_orb(
     orb_options: &OrbOptions,
     progress: &mut dyn FnMut(usize, usize),
 ) -> Result<(VisualMap, MapSummary)> {
-    let start = Instant::now();
     let tracker_options = TrackerOptions {
         orb: *orb_options,
         ..TrackerOptions::default()
     };
-    let mut tracker = FrameTracker::new(tracker_options, stream.mask.clone())?;
+    build_map_with_tracker(stream, loop_closure, &tracker_options, progress)
+}
+
+/// [`build_map_with`] with the front end's settings (detection thresholds, track count, the
+/// ORB settings of the front end and the keyframes).
+pub fn build_map_with_tracker(
+    stream: &LensStream,
+    loop_closure: bool,
+    tracker_options: &TrackerOptions,
+    progress: &mut dyn FnMut(usize, usize),
+) -> Result<(VisualMap, MapSummary)> {
+    let start = Instant::now();
+    let orb_options = &tracker_options.orb;
+    let mut tracker = FrameTracker::new(*tracker_options, stream.mask.clone())?;
     let n = stream.frames.len();
     let mut frames = Vec::with_capacity(n);
     stream.for_each_frame(|i, img| {
@@ -335,7 +351,11 @@ pub fn build_map_with_orb(
         added = loops.added_observations,
         "loop closure"
     );
-    let map = VisualMap::from_reconstruction_described(
+    let quality = assess(&frames, &recon, &mapper_options);
+    if !quality.trustworthy {
+        tracing::warn!(reason = %quality.reason, "the map is not trustworthy");
+    }
+    let mut map = VisualMap::from_reconstruction_described(
         &recon,
         &features,
         tracker.track_descriptors(),
@@ -357,8 +377,10 @@ pub fn build_map_with_orb(
         loops_verified: loops.verified,
         loops_closed: loops.closed.len(),
         landmarks_merged: loops.merged_landmarks,
+        quality: quality.clone(),
         seconds: start.elapsed().as_secs_f64(),
     };
+    map.quality = Some(quality);
     Ok((map, summary))
 }
 

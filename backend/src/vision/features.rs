@@ -865,6 +865,69 @@ pub fn match_descriptor_groups(
     out
 }
 
+/// Brute-force Hamming matching of `query` to groups of train descriptors (as
+/// [`match_descriptor_groups`]) that keeps an ambiguous keypoint's few candidates instead of
+/// dropping it: every group whose nearest view is within `max_distance` and no farther than the
+/// best group's distance divided by `options.ratio` is proposed, as long as there are at most
+/// `max_candidates` such groups (a keypoint on a tile that recurs a dozen times in the train
+/// set says nothing). No mutual check (the copies of a repeated pattern all prefer the same
+/// query keypoint). Meant for repeated texture, where the right landmark is one of a few
+/// look-alikes and a robust estimator chooses among them. Output in query order, each
+/// keypoint's candidates by distance; deterministic.
+pub fn match_descriptor_groups_ambiguous(
+    query: &[Descriptor],
+    train: &[Descriptor],
+    groups: &[u32],
+    options: &MatchOptions,
+    max_candidates: usize,
+) -> Vec<DescriptorMatch> {
+    let k = max_candidates.max(1);
+    let mut out = Vec::new();
+    // The k + 1 nearest distinct groups of one query: (distance, group), sorted.
+    let mut near: Vec<(u32, u32)> = Vec::with_capacity(k + 2);
+    for (i, q) in query.iter().enumerate() {
+        near.clear();
+        for (t, &g) in train.iter().zip(groups) {
+            let dist = q.distance(t);
+            if dist > options.max_distance {
+                continue;
+            }
+            if near.len() > k && dist >= near[k].0 {
+                continue;
+            }
+            if let Some(pos) = near.iter().position(|e| e.1 == g) {
+                if dist < near[pos].0 {
+                    near[pos].0 = dist;
+                } else {
+                    continue;
+                }
+            } else {
+                near.push((dist, g));
+            }
+            near.sort_unstable();
+            near.truncate(k + 1);
+        }
+        let Some(&(best, _)) = near.first() else {
+            continue;
+        };
+        let limit = best as f32 / options.ratio;
+        let close: Vec<(u32, u32)> = near
+            .iter()
+            .copied()
+            .filter(|&(d, _)| (d as f32) <= limit)
+            .collect();
+        if close.len() > k {
+            continue;
+        }
+        out.extend(close.into_iter().map(|(d, g)| DescriptorMatch {
+            query: i,
+            train: g as usize,
+            distance: d,
+        }));
+    }
+    out
+}
+
 /// Settings of pyramidal Lucas–Kanade tracking.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct KltOptions {

@@ -116,7 +116,14 @@ pub struct RansacOptions {
     pub min_inliers: usize,
     /// Seed of the sampling generator (ChaCha8).
     pub seed: u64,
+    /// When non-zero and the data are larger than twice this: a model is scored on all data
+    /// only if at least [`PREVERIFY_MIN_INLIERS`] of this many evenly spread data are its
+    /// inliers (a cheap test that lets RANSAC draw the many samples a low inlier share needs).
+    pub preverify: usize,
 }
+
+/// Inliers a model needs among the `preverify` test data to be scored on all of them.
+pub const PREVERIFY_MIN_INLIERS: usize = 2;
 
 impl Default for RansacOptions {
     fn default() -> Self {
@@ -127,6 +134,7 @@ impl Default for RansacOptions {
             max_iterations: 2000,
             min_inliers: 12,
             seed: 0x4B49_5749,
+            preverify: 0,
         }
     }
 }
@@ -669,6 +677,12 @@ pub fn absolute_pose_ransac(
             options.threshold_rad,
         )
     };
+    let test: Option<Vec<usize>> =
+        (options.preverify > 0 && n > 2 * options.preverify).then(|| {
+            (0..options.preverify)
+                .map(|j| j * n / options.preverify)
+                .collect()
+        });
     while it < needed {
         it += 1;
         sample_distinct(&mut rng, n, K, &mut sample);
@@ -679,6 +693,18 @@ pub fn absolute_pose_ransac(
         ];
         let xs = [points[sample[0]], points[sample[1]], points[sample[2]]];
         for pose in p3p(&ys, &xs) {
+            if let Some(test) = &test
+                && test
+                    .iter()
+                    .filter(|&&i| {
+                        angular_error(&bearings[i], &(pose * Point3::from(points[i])).coords)
+                            <= options.threshold_rad
+                    })
+                    .count()
+                    < PREVERIFY_MIN_INLIERS
+            {
+                continue;
+            }
             let (cost, count) = score(&pose);
             if best.as_ref().is_none_or(|b| cost < b.1) {
                 best = Some((pose, cost, count));

@@ -42,8 +42,9 @@ use kiwi_core::geometry::Pose;
 
 use crate::error::{BackendError, Result};
 use crate::vision::features::{
-    Descriptor, FrameFeatures, GrayImage, KltOptions, KltPyramid, Mask, MatchOptions, OrbExtractor,
-    OrbOptions, match_descriptor_groups, track_klt_pyramids,
+    Descriptor, DescriptorMatch, FrameFeatures, GrayImage, KltOptions, KltPyramid, Mask,
+    MatchOptions, OrbExtractor, OrbOptions, match_descriptor_groups,
+    match_descriptor_groups_ambiguous, track_klt_pyramids,
 };
 use crate::vision::geometry::{
     RansacOptions, absolute_pose_position_std, absolute_pose_ransac, angular_error,
@@ -122,12 +123,24 @@ pub struct LocalizerOptions {
     /// Rounds of guided densification of a relocalization hypothesis (each re-projects the
     /// landmarks of the keyframes that view the current pose's surroundings best).
     pub relocalization_guided_rounds: usize,
+    /// Keyframes viewing a relocalization hypothesis best whose landmarks its densification
+    /// projects.
+    pub relocalization_guided_keyframes: usize,
     /// A relocalized pose must be supported across the view the map predicts: of the cells of
     /// a `support_grid` × `support_grid` image grid where at least `support_min_predicted` map
     /// landmarks project (from the keyframes viewing that pose best) and the query has
     /// keypoints, at least this share must hold an inlier. A pose fitted to one copy of a
     /// repeated photo explains that photo only.
     pub min_view_support: f64,
+    /// When no candidate window gives a pose, the query is matched against the whole map and
+    /// each keypoint keeps up to this many look-alike landmarks (0: no whole-map attempt).
+    pub relocalization_map_candidates: usize,
+    /// RANSAC iterations of the whole-map hypothesis (its share of right matches is low).
+    pub relocalization_map_iterations: usize,
+    /// Whole-map attempts per run of frames without a pose: after this many failed, only the
+    /// candidate windows are tried until a pose is found (a view the map never saw would pay
+    /// the whole-map matching on every attempt).
+    pub relocalization_map_attempts: usize,
     /// See `min_view_support`.
     pub support_grid: u32,
     /// See `min_view_support`.
@@ -188,6 +201,9 @@ pub struct LocalizerOptions {
     pub guided_max_distance: u32,
     /// RANSAC seed (mixed with the frame index).
     pub seed: u64,
+    /// Localize in a map whose own check found it not trustworthy ([`VisualMap::quality`]);
+    /// off: every frame is lost with the map's reason (a wrong map gives wrong poses).
+    pub serve_untrusted_map: bool,
 }
 
 impl Default for LocalizerOptions {
@@ -206,9 +222,22 @@ impl Default for LocalizerOptions {
             relocalization_hypothesis_inliers: 12,
             // Window, then the best-viewing keyframes twice: the third round rarely adds more.
             relocalization_guided_rounds: 3,
+            // A view from elsewhere spans the landmarks of several keyframes of a sweep, each of
+            // which sees a part of it (few dozen landmarks each in a texture-poor room).
+            relocalization_guided_keyframes: 8,
             // A right pose from elsewhere matched inliers in most predicted cells on the photo
             // room's revisit; one photo copy covers a few of an 8 × 8 grid.
             min_view_support: 0.3,
+            // A tile or door corner that recurs more often than this is left out: it cannot
+            // tell copies apart, and each kept look-alike dilutes the right matches.
+            relocalization_map_candidates: 3,
+            // 10 % right matches need ~9 000 P3P draws for 99.99 %; adaptive stopping ends
+            // far sooner once a hypothesis with many inliers is found.
+            relocalization_map_iterations: 10_000,
+            // A third of the eager first second at 30 Hz: the kitchen's revisit found the map on
+            // its first whole-map attempt; later attempts of a long lost run rarely succeed
+            // where the first ones failed, and each costs ~4 window attempts.
+            relocalization_map_attempts: 10,
             // 8 × 8 cells of 120 px at 960 px: a photo or a tile panel covers a few of them.
             support_grid: 8,
             // A cell with fewer predicted landmarks is too thin to expect an inlier in.
@@ -259,6 +288,7 @@ impl Default for LocalizerOptions {
             // ORB-SLAM's "low" threshold for a guided (position-constrained) match.
             guided_max_distance: 50,
             seed: 0x4C4F_4341,
+            serve_untrusted_map: false,
         }
     }
 }
@@ -320,6 +350,15 @@ pub fn median_keyframe_depth(map: &VisualMap) -> Option<f64> {
     }
     depths.sort_by(f64::total_cmp);
     Some(depths[depths.len() / 2])
+}
+
+/// Evenly spread whole-map matches each P3P model is tested on before it is scored on all: at
+/// ~8 % right matches a right model has ~4 inliers among 60, a wrong one rarely 2.
+const WHOLE_MAP_PREVERIFY: usize = 60;
+
+/// A keypoint's pixel as an exact key (keypoints are told apart by position).
+fn pixel_key(p: &Point2<f64>) -> (u64, u64) {
+    (p.x.to_bits(), p.y.to_bits())
 }
 
 /// One relocalization candidate as tried (for diagnostics against the truth).
@@ -413,6 +452,10 @@ pub struct Localizer {
     /// Relocalization attempts so far and their wall time (s): the cost reported per stream.
     attempts: usize,
     attempt_seconds: f64,
+    /// Why the map serves no poses (its own check refused it), if so.
+    refused: Option<String>,
+    /// Whole-map attempts in the current run of frames without a pose.
+    map_attempts_in_run: usize,
 }
 
 fn vision_err(message: String) -> BackendError {
@@ -512,6 +555,12 @@ impl Localizer {
             lost_since: None,
             attempts: 0,
             attempt_seconds: 0.0,
+            refused: map
+                .quality
+                .as_ref()
+                .filter(|q| !q.trustworthy && !options.serve_untrusted_map)
+                .map(|q| q.reason.clone()),
+            map_attempts_in_run: 0,
         })
     }
 
@@ -680,6 +729,18 @@ impl Localizer {
     /// in centre (in units of the map's median depth) and in viewing direction (a keyframe
     /// 0.3 m away looking 90° elsewhere shares less than one 0.5 m away looking the same way).
     fn viewing_landmarks(&self, cam_from_map: &Pose, count: usize) -> Vec<u32> {
+        let set: BTreeSet<u32> = self
+            .viewing_order(cam_from_map)
+            .iter()
+            .take(count)
+            .flat_map(|&k| self.keyframe_landmarks[k].iter().copied())
+            .collect();
+        set.into_iter().collect()
+    }
+
+    /// Keyframes ordered by how well they view the pose's surroundings (see
+    /// `viewing_landmarks`).
+    fn viewing_order(&self, cam_from_map: &Pose) -> Vec<usize> {
         let map_from_cam = cam_from_map.inverse();
         let c = map_from_cam.translation.vector;
         let axis = map_from_cam.rotation * Vector3::z();
@@ -694,12 +755,7 @@ impl Localizer {
             })
             .collect();
         order.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-        let set: BTreeSet<u32> = order
-            .iter()
-            .take(count)
-            .flat_map(|(_, k)| self.keyframe_landmarks[*k].iter().copied())
-            .collect();
-        set.into_iter().collect()
+        order.into_iter().map(|(_, k)| k).collect()
     }
 
     /// Landmarks seen by the `count` keyframes whose centres are nearest to the pose's centre.
@@ -793,6 +849,16 @@ impl Localizer {
                 image.width, image.height
             )));
         }
+        if let Some(why) = &self.refused {
+            return Ok(FrameLocalization::lost(
+                frame,
+                t,
+                0,
+                format!(
+                    "the map is not trustworthy: {why}; rebuild it from a mapping episode with more texture or slower motion"
+                ),
+            ));
+        }
         let pyramid = KltPyramid::new(image, &self.options.klt)?;
         let mut features: Option<FrameFeatures> = None;
         let mut reason = String::new();
@@ -861,7 +927,8 @@ impl Localizer {
             None => self.orb.extract(image, Some(&self.mask), &self.camera)?,
         };
         let started = std::time::Instant::now();
-        let relocalized = self.relocalize(frame, &feats, None);
+        let whole_map = self.map_attempts_in_run < self.options.relocalization_map_attempts;
+        let relocalized = self.relocalize(frame, &feats, whole_map, None);
         self.attempts += 1;
         self.attempt_seconds += started.elapsed().as_secs_f64();
         self.failed_run = if relocalized.is_ok() {
@@ -871,6 +938,9 @@ impl Localizer {
         };
         if relocalized.is_ok() {
             self.lost_since = None;
+            self.map_attempts_in_run = 0;
+        } else if whole_map {
+            self.map_attempts_in_run += 1;
         }
         match relocalized {
             Ok(e) => Ok(self.finish(
@@ -1095,7 +1165,7 @@ impl Localizer {
     ) -> Result<RelocalizationTrace> {
         let features = self.orb.extract(image, Some(&self.mask), &self.camera)?;
         let mut candidates = Vec::new();
-        let _ = self.relocalize(frame, &features, Some(&mut candidates));
+        let _ = self.relocalize(frame, &features, true, Some(&mut candidates));
         Ok(RelocalizationTrace {
             features,
             candidates,
@@ -1103,11 +1173,15 @@ impl Localizer {
     }
 
     /// Global relocalization by place recognition; `Err((reason, inliers))` when rejected.
-    /// Each candidate tried is appended to `trace` when given.
+    /// Each candidate tried is appended to `trace` when given. When no candidate window gives
+    /// an accepted pose, the query is matched once against the whole map, keeping a few
+    /// look-alike landmarks per keypoint (`relocalization_map_candidates`), and RANSAC chooses
+    /// (only when `whole_map` is set).
     fn relocalize(
         &self,
         frame: u32,
         feats: &FrameFeatures,
+        whole_map: bool,
         mut trace: Option<&mut Vec<CandidateTrace>>,
     ) -> std::result::Result<Estimate, (String, usize)> {
         if feats.keypoints.len() < self.options.min_inliers_relocalization {
@@ -1120,13 +1194,13 @@ impl Localizer {
         let candidates = self
             .database
             .query(&bow, self.options.relocalization_candidates);
-        if candidates.is_empty() {
-            return Err(("no keyframe shares a visual word".into(), 0));
-        }
         let grid = KeypointGrid::new(&feats.keypoints, self.options.guided_radius_px);
-        let min_inliers = self.options.min_inliers_relocalization;
         let mut best: Option<Estimate> = None;
-        let mut last_reason = String::new();
+        let mut last_reason = if candidates.is_empty() {
+            "no keyframe shares a visual word".to_string()
+        } else {
+            String::new()
+        };
         let mut best_rejected = 0;
         let n_kf = self.keyframe_landmarks.len();
         for (rank, &(score, k)) in candidates.iter().enumerate() {
@@ -1138,117 +1212,227 @@ impl Localizer {
             let local: Vec<u32> = set.into_iter().collect();
             // Match against every keyframe view of the window's landmarks (plus their
             // representatives), grouped by landmark.
-            let mut train: Vec<Descriptor> = Vec::new();
-            let mut groups: Vec<u32> = Vec::new();
-            for &l in &local {
-                train.push(self.descriptors[l as usize]);
-                groups.push(l);
-            }
-            for j in lo..=hi {
-                for (d, l) in &self.keyframe_views[j] {
-                    train.push(*d);
-                    groups.push(*l);
-                }
-            }
+            let (train, groups) = self.train_set(&local, lo..=hi);
             let matches = match_descriptor_groups(
                 &feats.descriptors,
                 &train,
                 &groups,
                 &self.options.matching,
             );
-            let corr: Vec<Correspondence> = matches
-                .iter()
-                .map(|m| {
-                    let kp = &feats.keypoints[m.query];
-                    Correspondence {
-                        landmark: m.train as u32,
-                        pixel: kp.pixel,
-                        bearing: kp.bearing,
-                    }
-                })
-                .collect();
             let salt = 16 + 4 * rank as u64;
-            let hypothesis_min = self
-                .options
-                .relocalization_hypothesis_inliers
-                .clamp(4, min_inliers);
-            let first = match self.estimate(&corr, &self.ransac(frame, salt, hypothesis_min)) {
-                Ok(e) => e,
-                Err(why) => {
-                    if let Some(t) = trace.as_deref_mut() {
-                        t.push(CandidateTrace {
-                            keyframe: k,
-                            score,
-                            matches: matches.iter().map(|m| (m.query, m.train as u32)).collect(),
-                            inliers: 0,
-                            cam_from_map: None,
-                            rejection: why.clone(),
-                        });
-                    }
-                    last_reason = format!("keyframe {k}: {why}");
-                    continue;
-                }
-            };
-            // Densify with guided matching: first over the candidate window's landmarks, then
-            // over the keyframes that view the estimated pose's surroundings best (a view from
-            // elsewhere is often nearest to keyframes place recognition did not rank first).
-            let first_inliers = first.inliers.len();
-            let mut e = first;
-            for round in 0..self.options.relocalization_guided_rounds {
-                let landmarks = if round == 0 {
-                    local.clone()
-                } else {
-                    self.viewing_landmarks(&e.cam_from_map, self.options.guided_keyframes)
-                };
-                let guided = self.guided_matches(&e.cam_from_map, &landmarks, feats, &grid);
-                let ransac = self.ransac(frame, salt + 1 + round as u64, hypothesis_min);
-                match self.estimate(&guided, &ransac) {
-                    Ok(g) if g.inliers.len() > e.inliers.len() => e = g,
-                    _ => {
-                        if round > 0 {
-                            break;
-                        }
-                    }
-                }
-            }
-            tracing::debug!(
+            let attempt = self.densified_hypothesis(
                 frame,
-                keyframe = k,
-                matches = corr.len(),
-                hypothesis_inliers = first_inliers,
-                inliers = e.inliers.len(),
-                candidates = e.candidates,
-                "relocalization candidate densified"
+                salt,
+                &matches,
+                feats,
+                &grid,
+                Some(&local),
+                RansacOptions::default().max_iterations,
             );
-            let verdict = self
-                .accept(&e, min_inliers)
-                .and_then(|()| self.check_view_support(&e, feats));
-            if let Some(t) = trace.as_deref_mut() {
-                t.push(CandidateTrace {
-                    keyframe: k,
-                    score,
-                    matches: matches.iter().map(|m| (m.query, m.train as u32)).collect(),
-                    inliers: e.inliers.len(),
-                    cam_from_map: Some(e.cam_from_map),
-                    rejection: verdict.clone().err().unwrap_or_default(),
-                });
+            self.judge_candidate(
+                attempt,
+                (k, score, &matches),
+                feats,
+                trace.as_deref_mut(),
+                &mut best,
+                &mut best_rejected,
+                &mut last_reason,
+            );
+        }
+        if best.is_none() && whole_map && self.options.relocalization_map_candidates > 0 {
+            let all: Vec<u32> = (0..self.positions.len() as u32).collect();
+            let (train, groups) = self.train_set(&all, 0..=n_kf.saturating_sub(1));
+            let matches = match_descriptor_groups_ambiguous(
+                &feats.descriptors,
+                &train,
+                &groups,
+                &self.options.matching,
+                self.options.relocalization_map_candidates,
+            );
+            let attempt = self.densified_hypothesis(
+                frame,
+                8,
+                &matches,
+                feats,
+                &grid,
+                None,
+                self.options.relocalization_map_iterations,
+            );
+            // Traced under the keyframe viewing its estimate best (the map has no other).
+            let k = attempt
+                .as_ref()
+                .ok()
+                .and_then(|e| self.viewing_order(&e.cam_from_map).first().copied())
+                .unwrap_or(0);
+            self.judge_candidate(
+                attempt,
+                (k, f64::NAN, &matches),
+                feats,
+                trace,
+                &mut best,
+                &mut best_rejected,
+                &mut last_reason,
+            );
+        }
+        best.ok_or((last_reason, best_rejected))
+    }
+
+    /// Train descriptors of `landmarks` (their representatives) and of every view of theirs in
+    /// `keyframes`, with the landmark of each.
+    fn train_set(
+        &self,
+        landmarks: &[u32],
+        keyframes: std::ops::RangeInclusive<usize>,
+    ) -> (Vec<Descriptor>, Vec<u32>) {
+        let mut train: Vec<Descriptor> = Vec::new();
+        let mut groups: Vec<u32> = Vec::new();
+        for &l in landmarks {
+            train.push(self.descriptors[l as usize]);
+            groups.push(l);
+        }
+        for j in keyframes {
+            for (d, l) in self.keyframe_views.get(j).into_iter().flatten() {
+                train.push(*d);
+                groups.push(*l);
             }
-            match verdict {
-                Ok(()) => {
-                    if best
-                        .as_ref()
-                        .is_none_or(|b| e.inliers.len() > b.inliers.len())
-                    {
-                        best = Some(e);
-                    }
+        }
+        (train, groups)
+    }
+
+    /// A P3P RANSAC hypothesis on descriptor `matches` (at least
+    /// `relocalization_hypothesis_inliers`), densified by guided matching: first over
+    /// `window` (the candidate window's landmarks) when given, then over the keyframes that
+    /// view the estimated pose's surroundings best (a view from elsewhere is often nearest to
+    /// keyframes place recognition did not rank first).
+    #[allow(clippy::too_many_arguments)]
+    fn densified_hypothesis(
+        &self,
+        frame: u32,
+        salt: u64,
+        matches: &[DescriptorMatch],
+        feats: &FrameFeatures,
+        grid: &KeypointGrid,
+        window: Option<&[u32]>,
+        max_iterations: usize,
+    ) -> std::result::Result<Estimate, String> {
+        let corr: Vec<Correspondence> = matches
+            .iter()
+            .map(|m| {
+                let kp = &feats.keypoints[m.query];
+                Correspondence {
+                    landmark: m.train as u32,
+                    pixel: kp.pixel,
+                    bearing: kp.bearing,
                 }
-                Err(why) => {
-                    best_rejected = best_rejected.max(e.inliers.len());
-                    last_reason = format!("keyframe {k}: {why}");
+            })
+            .collect();
+        let hypothesis_min = self
+            .options
+            .relocalization_hypothesis_inliers
+            .clamp(4, self.options.min_inliers_relocalization);
+        let ransac = RansacOptions {
+            max_iterations,
+            preverify: if window.is_none() {
+                WHOLE_MAP_PREVERIFY
+            } else {
+                0
+            },
+            ..self.ransac(frame, salt, hypothesis_min)
+        };
+        let first = self.estimate(&corr, &ransac)?;
+        let first_inliers = first.inliers.len();
+        let mut e = first;
+        for round in 0..self.options.relocalization_guided_rounds {
+            let landmarks = match window {
+                Some(w) if round == 0 => w.to_vec(),
+                _ => self.viewing_landmarks(
+                    &e.cam_from_map,
+                    self.options.relocalization_guided_keyframes,
+                ),
+            };
+            let mut guided = self.guided_matches(&e.cam_from_map, &landmarks, feats, grid);
+            if window.is_none() {
+                // Guided matching across a 40-60° change of view finds fewer matches than the
+                // look-alike descriptor matches the pose already explains: keep those too (one
+                // landmark per keypoint).
+                let taken: BTreeSet<(u64, u64)> =
+                    e.inliers.iter().map(|c| pixel_key(&c.pixel)).collect();
+                guided.retain(|c| !taken.contains(&pixel_key(&c.pixel)));
+                guided.extend(e.inliers.iter().copied());
+            }
+            let ransac = self.ransac(frame, salt + 1 + round as u64, hypothesis_min);
+            // A whole-map hypothesis's inliers hold look-alikes: its pose is judged on the
+            // guided matches it predicts, not on the descriptor matches.
+            let replace = |g: &Estimate, e: &Estimate| {
+                g.inliers.len() > e.inliers.len() || (round == 0 && window.is_none())
+            };
+            match self.estimate(&guided, &ransac) {
+                Ok(g) if replace(&g, &e) => e = g,
+                _ => {
+                    if round > 0 || window.is_none() {
+                        break;
+                    }
                 }
             }
         }
-        best.ok_or((last_reason, best_rejected))
+        tracing::debug!(
+            frame,
+            matches = corr.len(),
+            hypothesis_inliers = first_inliers,
+            inliers = e.inliers.len(),
+            candidates = e.candidates,
+            "relocalization candidate densified"
+        );
+        Ok(e)
+    }
+
+    /// Apply the acceptance rules to one candidate's estimate, trace it, and keep the best.
+    #[allow(clippy::too_many_arguments)]
+    fn judge_candidate(
+        &self,
+        attempt: std::result::Result<Estimate, String>,
+        (keyframe, score, matches): (usize, f64, &[DescriptorMatch]),
+        feats: &FrameFeatures,
+        trace: Option<&mut Vec<CandidateTrace>>,
+        best: &mut Option<Estimate>,
+        best_rejected: &mut usize,
+        last_reason: &mut String,
+    ) {
+        let verdict = attempt.as_ref().map_err(Clone::clone).and_then(|e| {
+            self.accept(e, self.options.min_inliers_relocalization)
+                .and_then(|()| self.check_view_support(e, feats))
+        });
+        if let Some(t) = trace {
+            t.push(CandidateTrace {
+                keyframe,
+                score,
+                matches: matches.iter().map(|m| (m.query, m.train as u32)).collect(),
+                inliers: attempt.as_ref().map_or(0, |e| e.inliers.len()),
+                cam_from_map: attempt.as_ref().ok().map(|e| e.cam_from_map),
+                rejection: verdict.clone().err().unwrap_or_default(),
+            });
+        }
+        match (attempt, verdict) {
+            (Ok(e), Ok(())) => {
+                if best
+                    .as_ref()
+                    .is_none_or(|b| e.inliers.len() > b.inliers.len())
+                {
+                    *best = Some(e);
+                }
+            }
+            (attempt, Err(why)) => {
+                if let Ok(e) = attempt {
+                    *best_rejected = (*best_rejected).max(e.inliers.len());
+                }
+                *last_reason = if score.is_nan() {
+                    format!("whole map: {why}")
+                } else {
+                    format!("keyframe {keyframe}: {why}")
+                };
+            }
+            (Err(_), Ok(())) => {}
+        }
     }
 }
 

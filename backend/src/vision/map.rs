@@ -21,6 +21,7 @@ use kiwi_core::geometry::Pose;
 use crate::error::{BackendError, Result};
 use crate::vision::features::Descriptor;
 use crate::vision::place::{KeyframeDatabase, Vocabulary};
+use crate::vision::quality::MapQuality;
 
 /// The `format` tag of a map file.
 pub const MAP_FORMAT: &str = "kiwi-visual-map";
@@ -206,6 +207,10 @@ pub struct VisualMap {
     /// built in memory without one learns it when its keyframe database is first built).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub vocabulary: Option<Vocabulary>,
+    /// The mapper's own consistency check and verdict (`vision::quality`); absent in a map
+    /// that was not checked (assembled in memory), which is served as trustworthy.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub quality: Option<MapQuality>,
 }
 
 fn map_err(path: &Path, message: String) -> BackendError {
@@ -237,6 +242,7 @@ impl VisualMap {
             keyframes: Vec::new(),
             landmarks: Vec::new(),
             vocabulary: None,
+            quality: None,
         }
     }
 
@@ -314,6 +320,31 @@ impl VisualMap {
         self.camera
             .camera()
             .map_err(|e| map_err(path, format!("field `camera`: {e}")))?;
+        if let Some(q) = &self.quality {
+            let figures = [
+                q.direction_disagreement.unwrap_or(0.0),
+                q.reversed_coverage,
+                q.landmarks_per_keyframe,
+                q.shared_landmarks_p10,
+                q.keyframes_per_frame,
+            ];
+            if !finite(&figures) || figures.iter().any(|&x| x < 0.0) {
+                return Err(map_err(
+                    path,
+                    "field `quality`: expected finite, non-negative figures; rebuild the map \
+                     with `kiwi map`"
+                        .into(),
+                ));
+            }
+            if !q.trustworthy && q.reason.is_empty() {
+                return Err(map_err(
+                    path,
+                    "field `quality.reason`: a map that is not trustworthy must say why; \
+                     rebuild the map with `kiwi map`"
+                        .into(),
+                ));
+            }
+        }
         let n_land = self.landmarks.len();
         for (i, l) in self.landmarks.iter().enumerate() {
             if !finite(&l.position) {

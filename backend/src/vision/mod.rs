@@ -16,6 +16,7 @@
 //!   pose-graph correction and landmark fusion over a finished reconstruction.
 //! - [`map`]: the versioned `.kmap` file and its export from a reconstruction.
 //! - [`place`]: place recognition over keyframes (bag of binary words learned from the map).
+//! - [`quality`]: the mapper's own check of a finished map (forward against reversed mapping).
 //! - [`localize`]: every frame against a frozen map (KLT tracking with guided top-up,
 //!   relocalization by place recognition, strict acceptance).
 //! - [`episode`]: prepared-episode drivers behind `kiwi map` and `kiwi localize`.
@@ -34,3 +35,4 @@ pub mod loop_closure;
 pub mod map;
 pub mod mapping;
 pub mod place;
+pub mod quality;

@@ -156,6 +156,10 @@ pub struct AttemptDiagnosis {
     /// Query keypoints with a visible map landmark projecting within [`CORRECT_MATCH_PX`]
     /// under the true pose: the correct 2D-3D matches that exist in the whole map.
     pub correct_possible: usize,
+    /// Distinct map landmarks visible from the true pose with a query keypoint within
+    /// [`CORRECT_MATCH_PX`] of their projection: the most inliers a right pose can have (the
+    /// overlap of the view with the map).
+    pub landmarks_observable: usize,
     /// The keyframe sharing the most visible landmarks with the query (the right candidate),
     /// its distance (m) and viewing angle (deg) to the query, and that count.
     pub best_keyframe: (usize, f64, f64, usize),
@@ -251,6 +255,14 @@ pub fn diagnose_attempt(
             correct_possible += 1;
         }
     }
+    let landmarks_observable = projections
+        .iter()
+        .flatten()
+        .filter(|p| {
+            kps.iter()
+                .any(|kp| (*p - kp.pixel).norm() <= CORRECT_MATCH_PX)
+        })
+        .count();
     // Keyframes by shared visible landmarks.
     let mut overlap: Vec<(usize, usize)> = map
         .keyframes
@@ -309,6 +321,7 @@ pub fn diagnose_attempt(
         frame,
         keypoints: kps.len(),
         correct_possible,
+        landmarks_observable,
         best_keyframe: (best.1, bd, ba, best.0),
         candidates,
     }
@@ -317,10 +330,11 @@ pub fn diagnose_attempt(
 /// One line per attempt.
 pub fn describe_attempt(d: &AttemptDiagnosis) -> String {
     let mut s = format!(
-        "frame {}: {} keypoints, {} correct matches exist; best keyframe {} ({:.2} m, {:.0}°, {} shared)",
+        "frame {}: {} keypoints, {} correct matches exist ({} landmarks observable); best keyframe {} ({:.2} m, {:.0}°, {} shared)",
         d.frame,
         d.keypoints,
         d.correct_possible,
+        d.landmarks_observable,
         d.best_keyframe.0,
         d.best_keyframe.1,
         d.best_keyframe.2,

@@ -1,0 +1,188 @@
+//! The mapper's own check of a map, without ground truth: is the map consistent enough that a
+//! pose localized in it can be trusted?
+//!
+//! A monocular map can drift (scale and position) where the view holds few landmarks: every
+//! keyframe is then posed on a few dozen points and the error of each link accumulates.
+//! Bundle adjustment cannot see such drift (a drifted map fits its own observations), so the
+//! check maps the same tracks a second time in the **reverse frame order** and compares the two
+//! trajectories after a similarity alignment: the forward run's error grows from the first
+//! frame, the reversed run's from the last, so two consistent maps agree and a drifted one does
+//! not. The disagreement (RMS distance of the keyframe centres after the Sim(3), over the map's
+//! median keyframe-to-landmark depth) is what a pose localized in the map inherits: a
+//! localized camera is placed relative to landmarks at about that depth.
+//!
+//! A map is refused ([`MapQuality::trustworthy`] false, with the reason) when the two runs
+//! disagree by more than [`MAX_DIRECTION_DISAGREEMENT`], or when the reversed run cannot
+//! confirm enough of the forward keyframes ([`MIN_REVERSED_COVERAGE`]). The localizer outputs
+//! no pose in a refused map: every frame is lost with the reason.
+
+use std::collections::BTreeMap;
+
+use nalgebra::{Point3, Vector3};
+use serde::{Deserialize, Serialize};
+
+use kiwi_core::geometry::Pose;
+
+use crate::vision::align::umeyama;
+use crate::vision::mapping::{MapperOptions, MappingFrame, Reconstruction, reconstruct};
+
+/// Largest disagreement of the forward and reversed reconstructions (RMS keyframe-centre
+/// distance after a Sim(3), over the median keyframe-to-landmark depth) of a trusted map:
+/// ~1.5 % of a 3 m depth is 5 cm, the largest pose error a localization may have.
+pub const MAX_DIRECTION_DISAGREEMENT: f64 = 0.015;
+
+/// Smallest share of the forward keyframes the reversed run must pose for the check to
+/// confirm the map: a map only one direction can build is too fragile to vouch for.
+pub const MIN_REVERSED_COVERAGE: f64 = 0.5;
+
+/// The mapper's consistency figures for a map and the verdict (`.kmap` field `quality`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct MapQuality {
+    /// Whether poses may be localized in the map.
+    pub trustworthy: bool,
+    /// Why the map is not trustworthy (empty when it is).
+    #[serde(default, skip_serializing_if = "String::is_empty")]
+    pub reason: String,
+    /// RMS distance between the forward and the reversed reconstruction's keyframe centres
+    /// after a Sim(3), over the median keyframe-to-landmark depth; `None` when the reversed
+    /// run posed fewer than three of the keyframes.
+    pub direction_disagreement: Option<f64>,
+    /// Share of the forward keyframes the reversed run posed.
+    pub reversed_coverage: f64,
+    /// Median number of landmarks a keyframe observes.
+    pub landmarks_per_keyframe: f64,
+    /// Tenth percentile of the landmarks shared by consecutive keyframes (what carries the
+    /// scale from one keyframe to the next).
+    pub shared_landmarks_p10: f64,
+    /// Keyframes per posed frame.
+    pub keyframes_per_frame: f64,
+}
+
+/// Median keyframe-to-landmark distance of a reconstruction (its units); `None` without any.
+fn median_depth(recon: &Reconstruction) -> Option<f64> {
+    let mut d: Vec<f64> = Vec::new();
+    for kf in &recon.keyframes {
+        for o in &kf.observations {
+            if let Some(p) = recon.landmarks.get(&o.track) {
+                let z = (kf.cam_from_world * Point3::from(*p)).coords.norm();
+                if z.is_finite() && z > 0.0 {
+                    d.push(z);
+                }
+            }
+        }
+    }
+    percentile(d, 0.5)
+}
+
+fn percentile(mut v: Vec<f64>, q: f64) -> Option<f64> {
+    if v.is_empty() {
+        return None;
+    }
+    v.sort_by(f64::total_cmp);
+    let i = ((v.len() - 1) as f64 * q).round() as usize;
+    v.get(i).copied()
+}
+
+fn centre(cam_from_world: &Pose) -> Vector3<f64> {
+    cam_from_world.inverse().translation.vector
+}
+
+/// Check `recon` (the forward reconstruction of `frames`, possibly corrected by loop closure)
+/// by mapping `frames` again in reverse order with the same `options`.
+pub fn assess(
+    frames: &[MappingFrame],
+    recon: &Reconstruction,
+    options: &MapperOptions,
+) -> MapQuality {
+    let mapped = |kf: &crate::vision::mapping::ReconKeyframe| {
+        kf.observations
+            .iter()
+            .filter(|o| recon.landmarks.contains_key(&o.track))
+            .count() as f64
+    };
+    let landmarks_per_keyframe =
+        percentile(recon.keyframes.iter().map(mapped).collect(), 0.5).unwrap_or(0.0);
+    let shared: Vec<f64> = recon
+        .keyframes
+        .windows(2)
+        .map(|w| {
+            let ids: std::collections::BTreeSet<u64> = w[0]
+                .observations
+                .iter()
+                .filter(|o| recon.landmarks.contains_key(&o.track))
+                .map(|o| o.track)
+                .collect();
+            w[1].observations
+                .iter()
+                .filter(|o| ids.contains(&o.track))
+                .count() as f64
+        })
+        .collect();
+    let shared_landmarks_p10 = percentile(shared, 0.1).unwrap_or(0.0);
+    let keyframes_per_frame = recon.keyframes.len() as f64 / recon.frame_poses.len().max(1) as f64;
+
+    // The same tracks in reverse order (times negated so that they still increase).
+    let posed: std::collections::BTreeSet<u32> = recon.frame_poses.iter().map(|p| p.0).collect();
+    let reversed: Vec<MappingFrame> = frames
+        .iter()
+        .rev()
+        .filter(|f| posed.contains(&f.frame))
+        .map(|f| MappingFrame {
+            frame: f.frame,
+            t: -f.t,
+            observations: f.observations.clone(),
+        })
+        .collect();
+    let back = reconstruct(&reversed, options).ok();
+    let mut back_poses: BTreeMap<u32, Pose> = BTreeMap::new();
+    if let Some(b) = &back {
+        back_poses.extend(b.frame_poses.iter().copied());
+        back_poses.extend(b.keyframes.iter().map(|k| (k.frame, k.cam_from_world)));
+    }
+    let (fwd, bwd): (Vec<Vector3<f64>>, Vec<Vector3<f64>>) = recon
+        .keyframes
+        .iter()
+        .filter_map(|k| {
+            back_poses
+                .get(&k.frame)
+                .map(|b| (centre(&k.cam_from_world), centre(b)))
+        })
+        .unzip();
+    let reversed_coverage = fwd.len() as f64 / recon.keyframes.len().max(1) as f64;
+    let direction_disagreement =
+        umeyama(&bwd, &fwd, true)
+            .zip(median_depth(recon))
+            .map(|(sim, depth)| {
+                let ss: f64 = bwd
+                    .iter()
+                    .zip(&fwd)
+                    .map(|(b, f)| (sim.transform_point(b) - f).norm_squared())
+                    .sum();
+                (ss / fwd.len() as f64).sqrt() / depth
+            });
+    let reason = match direction_disagreement {
+        _ if reversed_coverage < MIN_REVERSED_COVERAGE => format!(
+            "mapping the episode in reverse order posed only {:.0} % of the keyframes (at least \
+             {:.0} % needed to confirm the map)",
+            100.0 * reversed_coverage,
+            100.0 * MIN_REVERSED_COVERAGE
+        ),
+        Some(d) if d > MAX_DIRECTION_DISAGREEMENT => format!(
+            "mapping the episode forward and in reverse order gives trajectories {:.1} % of the \
+             scene depth apart (at most {:.1} %): the map has drifted",
+            100.0 * d,
+            100.0 * MAX_DIRECTION_DISAGREEMENT
+        ),
+        Some(_) => String::new(),
+        None => "the reversed mapping could not be aligned with the map".into(),
+    };
+    MapQuality {
+        trustworthy: reason.is_empty(),
+        reason,
+        direction_disagreement,
+        reversed_coverage,
+        landmarks_per_keyframe,
+        shared_landmarks_p10,
+        keyframes_per_frame,
+    }
+}
