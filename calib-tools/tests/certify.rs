@@ -42,7 +42,9 @@ fn sim(dir: &Path, name: &str, edit: impl FnOnce(&mut UnitCaptureOptions)) -> Pa
     // Half the default sensor noise: smaller PNGs on disk, same code paths.
     o.noise_sigma = 1.0;
     edit(&mut o);
+    let started = std::time::Instant::now();
     write_unit_captures(&o).unwrap();
+    println!("{name}: simulated in {:.1} s", started.elapsed().as_secs_f64());
     out
 }
 
@@ -59,7 +61,14 @@ fn options(captures: &Path, units: &Path, previous: Option<&Path>) -> CertifyOpt
 }
 
 fn describe(r: &CertifyReport) -> String {
-    r.checks
+    let steps = r
+        .steps
+        .iter()
+        .map(|s| format!("{} {} {:.1} s", s.step, s.status, s.seconds))
+        .collect::<Vec<_>>()
+        .join(", ");
+    let checks = r
+        .checks
         .iter()
         .map(|c| {
             format!(
@@ -75,7 +84,8 @@ fn describe(r: &CertifyReport) -> String {
             )
         })
         .collect::<Vec<_>>()
-        .join("\n")
+        .join("\n");
+    format!("{checks}\nsteps: {steps} (total {:.1} s)", r.seconds)
 }
 
 /// Failed checks other than those naming missing captures or skipped dependants.
