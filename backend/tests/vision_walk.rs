@@ -16,7 +16,7 @@
 mod common;
 
 use common::{
-    assert_lost_frames_say_why, at, describe_localization, errors, keyframe_centres, session,
+    assert_lost_frames_say_why, at, describe_localization, errors, keyframe_centres, shared_session,
     tracked_map, truth,
 };
 
@@ -50,9 +50,8 @@ const MAX_ATE_FRACTION_CLOSED: f64 = 0.005;
 
 #[test]
 fn walk_far_from_the_start_localizes_in_the_room_sweep_map() {
-    let dir = tempfile::tempdir().unwrap();
-    let mapping = session(dir.path(), "mapping", SEED, Scenario::Survey, MAPPING_S);
-    let walk = session(dir.path(), "walk", SEED, Scenario::Walk, WALK_S);
+    let mapping = shared_session("mapping", SEED, Scenario::Survey, MAPPING_S);
+    let walk = shared_session("walk", SEED, Scenario::Walk, WALK_S);
 
     let stream = LensStream::open(&mapping, "left", "rear", None, None).unwrap();
     let (open, summary) = build_map_with(&stream, false, &mut |_, _| {}).unwrap();
@@ -152,9 +151,8 @@ fn walk_far_from_the_start_localizes_in_the_room_sweep_map() {
 fn walk_front_streams_localize_in_the_survey_front_map() {
     /// Measured 398/398 (seed 5); a margin for platform differences in OpenCV's ORB and KLT.
     const MIN_FRONT_FRACTION: f64 = 0.95;
-    let dir = tempfile::tempdir().unwrap();
-    let mapping = session(dir.path(), "mapping", SEED, Scenario::Survey, MAPPING_S);
-    let walk = session(dir.path(), "walk", SEED, Scenario::Walk, WALK_S);
+    let mapping = shared_session("mapping", SEED, Scenario::Survey, MAPPING_S);
+    let walk = shared_session("walk", SEED, Scenario::Walk, WALK_S);
 
     let map = tracked_map(&mapping, "left", "front");
     let (est, tru) = keyframe_centres(&map, &truth(&mapping, "left", "front"));

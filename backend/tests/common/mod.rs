@@ -27,6 +27,33 @@ pub fn session(root: &Path, name: &str, seed: u64, scenario: Scenario, duration_
     out.join("episodes").join("ep000")
 }
 
+/// The same session as [`session`], rendered once per test binary build and shared by the tests
+/// of that binary (nextest runs each test in its own process, possibly at the same time): kept
+/// under the build's temporary folder, written under a lock, and rendered again whenever the test
+/// binary is newer than the copy (the simulator may have changed). Tests must only read it.
+pub fn shared_session(name: &str, seed: u64, scenario: Scenario, duration_s: f64) -> PathBuf {
+    let key = format!("{name}-seed{seed}-{scenario:?}-{duration_s}s-320px");
+    let root = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("vision-sessions");
+    std::fs::create_dir_all(&root).unwrap();
+    let lock = std::fs::File::create(root.join(format!(".{key}.lock"))).unwrap();
+    lock.lock().unwrap();
+    let built_by = std::env::current_exe()
+        .and_then(|exe| std::fs::metadata(exe)?.modified())
+        .map(|t| format!("{t:?}"))
+        .unwrap_or_default();
+    let ready = root.join(format!("{key}.ready"));
+    let dir = root.join(&key);
+    if std::fs::read_to_string(&ready).ok().as_deref() != Some(built_by.as_str()) {
+        let _ = std::fs::remove_file(&ready);
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        session(&dir, name, seed, scenario, duration_s);
+        std::fs::write(&ready, &built_by).unwrap();
+    }
+    lock.unlock().unwrap();
+    dir.join(name).join("episodes").join("ep000")
+}
+
 /// `(t, camera centre)` rows of a truth pose file.
 pub fn truth(episode: &Path, camera: &str, lens: &str) -> Vec<(f64, Vector3<f64>)> {
     let text =
