@@ -16,8 +16,8 @@
 mod common;
 
 use common::{
-    assert_lost_frames_say_why, at, describe_localization, errors, keyframe_centres, shared_session,
-    tracked_map, truth,
+    assert_lost_frames_say_why, at, describe_localization, errors, keyframe_centres,
+    shared_session, tracked_map, truth,
 };
 
 use kiwi_backend::vision::align::{trajectory_error, umeyama};
