@@ -3,7 +3,9 @@ SHELL := /bin/bash
 .DEFAULT_GOAL := help
 
 # System packages the build and the tools need (Debian names). `make deps` installs the missing ones.
-APT_PACKAGES := libopencv-dev clang libclang-dev libudev-dev pkg-config ffmpeg openscad
+APT_PACKAGES := libopencv-dev clang libclang-dev libudev-dev pkg-config ffmpeg openscad python3-pip
+# Python modules the export tests read datasets back with (independent readers).
+PY_MODULES := pyarrow pandas zarr
 # Only for `make hardware-renders` (OpenSCAD's PNG export needs an X display).
 RENDER_PACKAGES := xvfb xauth
 HARDWARE_OUT ?= build/hardware
@@ -20,7 +22,7 @@ help:
 	@echo "make demo   certify two simulated units, record a session with them and run kiwi run on it (installs what it needs)"
 	@echo "make test   formatting, lints and every test"
 	@echo "make bench  benchmarks (release build)"
-	@echo "make deps   install the system packages the build needs (apt)"
+	@echo "make deps   install the system packages the build needs (apt) and the Python modules the export tests read datasets with (pip)"
 	@echo "make hardware  regenerate params.scad and the tool definitions, render every printed part to STL ($(HARDWARE_OUT)) and check it"
 	@echo "make hardware-renders  the PNG renders in docs/hardware/ (installs xvfb)"
 
@@ -31,6 +33,11 @@ deps:
 	  SUDO=""; [ "$$(id -u)" = 0 ] || SUDO=sudo; \
 	  $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq --no-install-recommends $$missing; \
 	else echo "system packages present"; fi
+	@missing=""; for m in $(PY_MODULES); do python3 -c "import $$m" 2>/dev/null || missing="$$missing $$m"; done; \
+	if [ -n "$$missing" ]; then \
+	  echo "installing Python modules:$$missing"; \
+	  python3 -m pip install --quiet $$missing 2>/dev/null || python3 -m pip install --quiet --break-system-packages $$missing; \
+	else echo "Python modules present"; fi
 
 build: deps
 	cargo build --release --workspace --bins
@@ -67,6 +74,7 @@ bench: deps
 	cargo bench -p kiwi-backend --bench fuse
 	cargo bench -p kiwi-backend --bench vision
 	cargo bench -p kiwi-backend --bench frames
+	cargo bench -p kiwi-backend --bench export
 
 hardware: deps
 	cargo run --release -p kiwi-calib -- hardware generate
