@@ -21,9 +21,9 @@
 //!   state holds the nearest measured value).
 //! - `observation.images.<camera>_<lens>`: the views, H.264 mp4.
 
+use serde_json::{Value, json};
 use std::collections::BTreeMap;
 use std::path::Path;
-use serde_json::{Value, json};
 
 use kiwi_core::layout::ToolKind;
 
@@ -51,7 +51,9 @@ pub const STATE_PER_WRIST: usize = 8;
 pub fn state_names(wrists: &[&str]) -> Vec<String> {
     let mut names = Vec::new();
     for w in wrists {
-        for n in ["tip_x", "tip_y", "tip_z", "tip_qx", "tip_qy", "tip_qz", "tip_qw"] {
+        for n in [
+            "tip_x", "tip_y", "tip_z", "tip_qx", "tip_qy", "tip_qz", "tip_qw",
+        ] {
             names.push(format!("{w}_{n}"));
         }
         names.push(format!("{w}_gripper"));
@@ -143,12 +145,7 @@ fn wrist_state(
 /// Write the dataset of `exp` into `dir`.
 pub fn write(exp: &SessionExport, options: &ExportOptions, dir: &Path) -> Result<ExportReport> {
     let views = resolve_views(exp, options.views.as_deref())?;
-    let wrist_names: Vec<&str> = exp
-        .session
-        .wrists
-        .keys()
-        .map(|s| s.camera_name())
-        .collect();
+    let wrist_names: Vec<&str> = exp.session.wrists.keys().map(|s| s.camera_name()).collect();
     let nw = wrist_names.len();
     let width = nw * STATE_PER_WRIST;
     let mut report = ExportReport::default();
@@ -315,8 +312,10 @@ pub fn write(exp: &SessionExport, options: &ExportOptions, dir: &Path) -> Result
 
     write_episodes_meta(dir, &episodes_meta)?;
     write_tasks(dir, &tasks)?;
-    let stats_json: serde_json::Map<String, Value> =
-        stats.iter().map(|(k, s)| (k.clone(), s.to_json())).collect();
+    let stats_json: serde_json::Map<String, Value> = stats
+        .iter()
+        .map(|(k, s)| (k.clone(), s.to_json()))
+        .collect();
     crate::formats::results::write_json(&dir.join("meta/stats.json"), &stats_json)?;
     let info = info_json(
         &wrist_names,
@@ -364,7 +363,10 @@ fn write_episodes_meta(dir: &Path, eps: &[EpisodeMeta]) -> Result<()> {
         for key in &first.videos {
             t.i64(&format!("videos/{key}/chunk_index"), col(&|e| e.chunk));
             t.i64(&format!("videos/{key}/file_index"), col(&|e| e.file));
-            t.f64(&format!("videos/{key}/from_timestamp"), vec![0.0; eps.len()]);
+            t.f64(
+                &format!("videos/{key}/from_timestamp"),
+                vec![0.0; eps.len()],
+            );
             t.f64(
                 &format!("videos/{key}/to_timestamp"),
                 eps.iter().map(|e| e.duration).collect(),
@@ -374,7 +376,10 @@ fn write_episodes_meta(dir: &Path, eps: &[EpisodeMeta]) -> Result<()> {
     t.i64("meta/episodes/chunk_index", vec![0; eps.len()]);
     t.i64("meta/episodes/file_index", vec![0; eps.len()]);
     t.string("kiwi/episode", eps.iter().map(|e| e.name.clone()).collect());
-    t.string("kiwi/verdict", eps.iter().map(|e| e.verdict.clone()).collect());
+    t.string(
+        "kiwi/verdict",
+        eps.iter().map(|e| e.verdict.clone()).collect(),
+    );
     t.f64(
         "kiwi/t0_session",
         eps.iter().map(|e| e.t0_session).collect(),

@@ -222,8 +222,11 @@ pub fn read_trajectory(path: &Path) -> Result<Vec<TrajectoryRow>> {
         path: path.to_path_buf(),
         message,
     };
-    let mut reader = csv::Reader::from_path(path)
-        .map_err(|e| input(format!("cannot open: {e}; run `kiwi run` on the session first")))?;
+    let mut reader = csv::Reader::from_path(path).map_err(|e| {
+        input(format!(
+            "cannot open: {e}; run `kiwi run` on the session first"
+        ))
+    })?;
     let mut rows: Vec<TrajectoryRow> = Vec::new();
     for (i, rec) in reader.deserialize::<RawRow>().enumerate() {
         let line = i + 2;
@@ -327,7 +330,11 @@ impl WristTrajectory {
             (Some(i), _) if self.rows[i].t_session == Some(t) => (&self.rows[i], &self.rows[i]),
             (Some(i), Some(b)) => (&self.rows[i], b),
             // The grid's last row may sit a rounding error after the last frame.
-            (Some(i), None) if self.rows[i].t_session.is_some_and(|ts| t - ts <= GRID_SLACK_S) => {
+            (Some(i), None)
+                if self.rows[i]
+                    .t_session
+                    .is_some_and(|ts| t - ts <= GRID_SLACK_S) =>
+            {
                 (&self.rows[i], &self.rows[i])
             }
             _ => return None,
@@ -465,10 +472,8 @@ pub fn open_session(session_toml: &Path, episodes: Option<&[String]>) -> Result<
         }
         let mut wrists = Vec::new();
         for (side, cfg) in &session.wrists {
-            let rows = read_trajectory(
-                &dir.join("out")
-                    .join(format!("{}.csv", side.camera_name())),
-            )?;
+            let rows =
+                read_trajectory(&dir.join("out").join(format!("{}.csv", side.camera_name())))?;
             wrists.push(WristTrajectory {
                 side: *side,
                 tool: cfg.tool,
@@ -724,7 +729,10 @@ pub fn episode_grid(ep: &EpisodeOutputs, views: &[ViewStream], rate: Rate) -> Re
             end = end.min(*b);
         }
     }
-    if end.partial_cmp(&start).is_none_or(|o| o == std::cmp::Ordering::Less) {
+    if end
+        .partial_cmp(&start)
+        .is_none_or(|o| o == std::cmp::Ordering::Less)
+    {
         return Err(export_err(format!(
             "episode {}: the wrists' trajectories and the views do not overlap in time",
             ep.name
@@ -807,7 +815,10 @@ pub fn finish_out_dir(partial: &Path, out: &Path) -> Result<()> {
     }
     std::fs::rename(partial, out).map_err(|e| BackendError::Input {
         path: out.to_path_buf(),
-        message: format!("cannot move the finished export from {}: {e}", partial.display()),
+        message: format!(
+            "cannot move the finished export from {}: {e}",
+            partial.display()
+        ),
     })
 }
 

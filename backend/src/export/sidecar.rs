@@ -169,7 +169,9 @@ pub fn write(exp: &SessionExport, dir: &Path) -> Result<ExportReport> {
     for (camera, set) in &calibrations {
         copy_file(
             &exp.root.join(set).join("calibration.json"),
-            &dir.join("calibration").join(camera).join("calibration.json"),
+            &dir.join("calibration")
+                .join(camera)
+                .join("calibration.json"),
             &mut files,
             dir,
         )?;

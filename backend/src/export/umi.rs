@@ -42,7 +42,10 @@ pub const STORE_NAME: &str = "dataset.zarr.zip";
 const ZLIB_LEVEL: u32 = 1;
 
 fn zip_err(path: &Path, e: &dyn std::fmt::Display) -> BackendError {
-    BackendError::Export(format!("{}: cannot write the zip store: {e}", path.display()))
+    BackendError::Export(format!(
+        "{}: cannot write the zip store: {e}",
+        path.display()
+    ))
 }
 
 /// A zarr v2 store being written into a zip file.
@@ -130,7 +133,13 @@ impl ZarrZip<'_> {
         raw: &[u8],
         attrs: Option<serde_json::Value>,
     ) -> Result<()> {
-        self.array_header(name, dtype, shape, shape.first().copied().unwrap_or(1), attrs)?;
+        self.array_header(
+            name,
+            dtype,
+            shape,
+            shape.first().copied().unwrap_or(1),
+            attrs,
+        )?;
         if shape.first().copied().unwrap_or(0) > 0 {
             self.chunk(name, 0, shape.len(), raw)?;
         }

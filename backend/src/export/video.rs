@@ -38,9 +38,19 @@ impl Encoder {
         let mut child = Command::new("ffmpeg")
             .args(["-hide_banner", "-loglevel", "error", "-y", "-f", "rawvideo"])
             .args(["-pix_fmt", "bgr24", "-s", &format!("{width}x{height}")])
-            .args(["-framerate", &format!("{}/{}", rate.num, rate.den), "-i", "-"])
+            .args([
+                "-framerate",
+                &format!("{}/{}", rate.num, rate.den),
+                "-i",
+                "-",
+            ])
             .args(["-c:v", "libx264", "-preset", "veryfast"])
-            .args(["-crf", &CRF.to_string(), "-g", &KEYFRAME_INTERVAL.to_string()])
+            .args([
+                "-crf",
+                &CRF.to_string(),
+                "-g",
+                &KEYFRAME_INTERVAL.to_string(),
+            ])
             // No B-frames: decode order is presentation order and no edit list shifts time 0.
             .args(["-bf", "0"])
             .args(["-pix_fmt", PIX_FMT, "-video_track_timescale"])

@@ -31,7 +31,8 @@ pub struct Synthetic {
 /// Front-lens rate of the synthetic cameras (Hz).
 pub const RATE: f64 = 30000.0 / 1001.0;
 /// Camera clocks: (name, first frame time on the camera clock, offset, drift ppm).
-pub const CAMERAS: [(&str, f64, f64, f64); 2] = [("left", 0.005, 0.0, 0.0), ("right", 0.011, 0.0371, 40.0)];
+pub const CAMERAS: [(&str, f64, f64, f64); 2] =
+    [("left", 0.005, 0.0, 0.0), ("right", 0.011, 0.0371, 40.0)];
 /// Left frames with no visual support.
 pub const IMU_ONLY: std::ops::Range<usize> = 10..13;
 /// The right frame whose opening was not measured.
@@ -49,7 +50,11 @@ pub fn truth_tip(side: usize, t: f64) -> Pose {
 }
 
 pub fn truth_opening(side: usize, t: f64) -> f64 {
-    if side == 0 { 0.1 + 0.05 * t } else { 0.02 + 0.01 * t }
+    if side == 0 {
+        0.1 + 0.05 * t
+    } else {
+        0.02 + 0.01 * t
+    }
 }
 
 pub fn session_time(camera: usize, t_cam: f64) -> f64 {
@@ -103,9 +108,21 @@ fn write_episode(spec: &Synthetic, root: &Path, name: &str, verdict: Verdict) {
             let tip = truth_tip(c, ts);
             let p = tip.translation.vector;
             let q = tip.rotation.coords;
-            let support = if c == 0 && IMU_ONLY.contains(&i) { "imu-only" } else { "front" };
-            let (unit, opening) = if c == 0 { ("rad", truth_opening(c, ts)) } else { ("m", truth_opening(c, ts)) };
-            let opening = if c == 1 && i == UNMEASURED { String::new() } else { format!("{opening:.6}") };
+            let support = if c == 0 && IMU_ONLY.contains(&i) {
+                "imu-only"
+            } else {
+                "front"
+            };
+            let (unit, opening) = if c == 0 {
+                ("rad", truth_opening(c, ts))
+            } else {
+                ("m", truth_opening(c, ts))
+            };
+            let opening = if c == 1 && i == UNMEASURED {
+                String::new()
+            } else {
+                format!("{opening:.6}")
+            };
             let pose = format!(
                 "{:.6},{:.6},{:.6},{:.9},{:.9},{:.9},{:.9}",
                 p.x, p.y, p.z, q.x, q.y, q.z, q.w
@@ -133,7 +150,11 @@ fn write_episode(spec: &Synthetic, root: &Path, name: &str, verdict: Verdict) {
                 offset_s: Some(*offset),
                 drift_ppm: *drift,
                 offset_std_s: 1e-5,
-                status: if i == 0 { CameraStatus::Reference } else { CameraStatus::OffsetAndDrift },
+                status: if i == 0 {
+                    CameraStatus::Reference
+                } else {
+                    CameraStatus::OffsetAndDrift
+                },
             })
             .collect(),
         pairs: Vec::new(),
@@ -158,7 +179,11 @@ pub fn make_session(spec: &Synthetic, root: &Path) -> PathBuf {
     for unit in ["L", "R"] {
         let set = root.join(format!("units/X5-{unit}/2026-01-01"));
         std::fs::create_dir_all(&set).unwrap();
-        std::fs::write(set.join("calibration.json"), format!("{{\"unit\": \"X5-{unit}\"}}\n")).unwrap();
+        std::fs::write(
+            set.join("calibration.json"),
+            format!("{{\"unit\": \"X5-{unit}\"}}\n"),
+        )
+        .unwrap();
     }
     let toml = r#"schema_version = 1
 name = "export-test"
@@ -188,7 +213,6 @@ description = "covered lenses"
     write_episode(spec, root, "ep1", Verdict::Unusable);
     path
 }
-
 
 /// The expected grid: first row, rows.
 pub fn expected_grid(spec: &Synthetic, fps: f64) -> (f64, usize) {
