@@ -230,21 +230,40 @@ impl FrameSource {
     /// `f` sees every frame in order, so results do not depend on the thread count. Stops at the
     /// first error (decoding or `f`).
     pub fn for_each_gray(&self, f: impl FnMut(usize, GrayImage) -> Result<()>) -> Result<()> {
-        self.for_each_decoded(|i| self.load_gray(i), ColorImage::to_gray, f)
+        let all: Vec<usize> = (0..self.frames.len()).collect();
+        self.for_each_gray_at(&all, f)
+    }
+
+    /// [`FrameSource::for_each_gray`] over the frames `indices` (strictly increasing):
+    /// `f(k, image of frame indices[k])`.
+    pub fn for_each_gray_at(
+        &self,
+        indices: &[usize],
+        f: impl FnMut(usize, GrayImage) -> Result<()>,
+    ) -> Result<()> {
+        self.for_each_decoded(indices, |i| self.load_gray(i), ColorImage::to_gray, f)
     }
 
     /// [`FrameSource::for_each_gray`] in colour.
     pub fn for_each_color(&self, f: impl FnMut(usize, ColorImage) -> Result<()>) -> Result<()> {
-        self.for_each_decoded(|i| self.load_color(i), |c| Ok(c.clone()), f)
+        let all: Vec<usize> = (0..self.frames.len()).collect();
+        self.for_each_decoded(&all, |i| self.load_color(i), |c| Ok(c.clone()), f)
+    }
+
+    /// Check that `indices` name frames of this stream in strictly increasing order.
+    pub fn check_indices(&self, indices: &[usize]) -> Result<()> {
+        check_increasing_below(&self.lens_dir, indices, self.frames.len())
     }
 
     fn for_each_decoded<T: Send>(
         &self,
+        indices: &[usize],
         load: impl Fn(usize) -> Result<T> + Sync,
         from_video: impl Fn(&ColorImage) -> Result<T> + Sync,
         mut f: impl FnMut(usize, T) -> Result<()>,
     ) -> Result<()> {
-        let n = self.frames.len();
+        self.check_indices(indices)?;
+        let n = indices.len();
         // A caller inside a one-thread rayon pool (`--threads 1`) gets one decoding thread.
         let parallel = rayon::current_num_threads() > 1;
         let (tx, rx) = std::sync::mpsc::sync_channel::<Result<T>>(DECODE_BATCH);
@@ -252,13 +271,11 @@ impl FrameSource {
             let (load, from_video) = (&load, &from_video);
             scope.spawn(move || match &self.storage {
                 LensStorage::Images => {
-                    let mut start = 0;
-                    while start < n {
-                        let end = (start + DECODE_BATCH).min(n);
+                    for chunk in indices.chunks(DECODE_BATCH) {
                         let batch: Vec<Result<T>> = if parallel {
-                            (start..end).into_par_iter().map(load).collect()
+                            chunk.par_iter().map(|&i| load(i)).collect()
                         } else {
-                            (start..end).map(load).collect()
+                            chunk.iter().map(|&i| load(i)).collect()
                         };
                         for img in batch {
                             let failed = img.is_err();
@@ -267,7 +284,6 @@ impl FrameSource {
                                 return;
                             }
                         }
-                        start = end;
                     }
                 }
                 LensStorage::Video(video) => {
@@ -280,9 +296,21 @@ impl FrameSource {
                                 return;
                             }
                         };
-                    for i in 0..n {
-                        let img =
-                            read_checked(&mut reader, i, &self.frames).and_then(|c| from_video(&c));
+                    // Frames between the wanted ones are decoded and dropped (a video is read
+                    // in order).
+                    let last = indices.last().copied().unwrap_or(0);
+                    let mut wanted = indices.iter().peekable();
+                    for i in 0..=last {
+                        let read = read_checked(&mut reader, i, &self.frames);
+                        if wanted.peek() != Some(&&i) {
+                            if let Err(e) = read {
+                                let _ = tx.send(Err(e));
+                                return;
+                            }
+                            continue;
+                        }
+                        wanted.next();
+                        let img = read.and_then(|c| from_video(&c));
                         let failed = img.is_err();
                         if tx.send(img).is_err() || failed {
                             return;
@@ -337,6 +365,23 @@ impl FrameSource {
             }
         });
         out
+    }
+}
+
+/// Check that `indices` are strictly increasing and below `len` (frames of the stream in
+/// `lens_dir`, named in the error).
+pub fn check_increasing_below(lens_dir: &Path, indices: &[usize], len: usize) -> Result<()> {
+    let increasing = indices.windows(2).all(|w| w[0] < w[1]);
+    match indices.last() {
+        Some(&last) if last >= len => Err(input_err(
+            lens_dir,
+            format!("frame {last} asked for, the stream has {len} frames"),
+        )),
+        _ if !increasing => Err(input_err(
+            lens_dir,
+            "frames asked for out of order: expected strictly increasing indices".into(),
+        )),
+        _ => Ok(()),
     }
 }
 

@@ -348,4 +348,3 @@ pub fn inspect_session(session_toml: &Path, options: InspectOptions) -> Result<S
         problems,
     })
 }
-

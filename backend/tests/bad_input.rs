@@ -114,10 +114,10 @@ fn kiwi_refuses_bad_input_and_writes_nothing() {
         std::fs::write(l.audio_wav("left"), "this is not audio").unwrap();
     });
     let in_g = variant(&base, root, "in_g", |_, l| {
-        map_imu(l, "right", |x| x.accel /= 9.80665)
+        map_imu(l, "right", |x| x.accel /= 9.80665);
     });
     let in_ms = variant(&base, root, "in_ms", |_, l| {
-        map_imu(l, "left", |x| x.t *= 1000.0)
+        map_imu(l, "left", |x| x.t *= 1000.0);
     });
     let bad_tool = variant(&base, root, "badtool", |d, _| {
         let path = d.join("session.toml");

@@ -123,15 +123,31 @@ fn recording(
 }
 
 /// Raw IMU samples at 1 kHz from 10 ms before the first frame to the end, device clock µs;
-/// counts vary per sample and axis so that any mix-up shows.
+/// counts vary per sample and axis so that any mix-up shows. The accelerometer holds gravity
+/// (1 g on the device's first axis, ±0.1 g of variation) and the gyro ±1.2 °/s of noise around
+/// rest, so the log passes KIWI's plausibility check of IMU units.
 fn raw_imu(first_frame_us: i64, frames: usize) -> Vec<(u64, [u16; 6])> {
+    // Counts per g at the ±32 g range.
+    const ONE_G: i64 = 1024;
     let end = first_frame_us + (frames as f64 / FPS * 1e6) as i64;
     let mut out = Vec::new();
     let mut t = first_frame_us - 10_000;
     let mut k = 0u64;
     while t < end {
-        let c = |axis: u64| (32768 + ((k * 37 + axis * 1013) % 4000) as i64 - 2000) as u16;
-        out.push((t as u64, [c(0), c(1), c(2), c(3), c(4), c(5)]));
+        let accel =
+            |axis: u64, g: i64| (32768 + g + ((k * 37 + axis * 13) % 200) as i64 - 100) as u16;
+        let gyro = |axis: u64| (32768 + ((k * 37 + axis * 1013) % 40) as i64 - 20) as u16;
+        out.push((
+            t as u64,
+            [
+                accel(0, ONE_G),
+                accel(1, 0),
+                accel(2, 0),
+                gyro(3),
+                gyro(4),
+                gyro(5),
+            ],
+        ));
         t += 1000;
         k += 1;
     }
@@ -244,7 +260,11 @@ fn an_x5_recording_and_a_go3_recording_are_ingested_exactly() {
     let float_imu: Vec<(u64, [f64; 3], [f64; 3])> = (0..120u64)
         .map(|k| {
             let f = k as f64;
-            (4990 + k * 5, [0.1 * f, -0.2, 1.0], [0.01 * f, 0.02, -0.03])
+            (
+                4990 + k * 5,
+                [0.001 * f, -0.2, 1.0],
+                [0.0001 * f, 0.0002, -0.0003],
+            )
         })
         .collect();
     let mut go3_trailer = trailer(

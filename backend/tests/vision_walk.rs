@@ -98,7 +98,7 @@ fn walk_far_from_the_start_localizes_in_the_room_sweep_map() {
     let options = LocalizerOptions::default();
     for camera in ["left", "right"] {
         let mut query = LensStream::open(&walk, camera, "rear", None, None).unwrap();
-        query.frames = query.frames[WINDOW].to_vec();
+        query.select(&WINDOW.collect::<Vec<_>>()).unwrap();
         let rows = truth(&walk, camera, "rear");
         let nearest = query
             .frames

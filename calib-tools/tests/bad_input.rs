@@ -172,7 +172,7 @@ fn kiwi_calib_refuses_bad_input_and_writes_nothing() {
     // Calibrations with one field wrong.
     let bad_lens = edited(root, "lens", |v| v["lenses"][0]["name"] = "left".into());
     let bad_cx = edited(root, "cx", |v| {
-        v["lenses"][1]["intrinsics"]["cx"] = 900.0.into()
+        v["lenses"][1]["intrinsics"]["cx"] = 900.0.into();
     });
     let bad_t = edited(root, "t", |v| {
         v["lenses"][0]["cam_from_imu"]["translation_m"] = serde_json::json!([1200.0, 0.0, 0.0]);
@@ -183,7 +183,7 @@ fn kiwi_calib_refuses_bad_input_and_writes_nothing() {
     let bad_date = edited(root, "date", |v| v["date"] = "2026-02-30".into());
     let bad_month = edited(root, "month", |v| v["date"] = "2026-13-01".into());
     let bad_fx = edited(root, "fx", |v| {
-        v["lenses"][0]["intrinsics"]["fx"] = (-5.0).into()
+        v["lenses"][0]["intrinsics"]["fx"] = (-5.0).into();
     });
     let random_json = root.join("bad").join("random.json");
     std::fs::write(&random_json, [0xffu8, 0xfe, 0x00, 0x12, 0x80]).unwrap();

@@ -110,7 +110,14 @@ fn a_missing_device_is_waited_for_then_recorded() {
     let stats = servo.stop();
     assert!(report.missed >= 10, "{report:?}");
     assert!(report.samples >= 25, "{report:?}");
-    assert_eq!(report.samples as usize, stats.served_positions.len());
+    // Every recorded sample was served; the request in flight when the recording ended may
+    // have been answered without being recorded.
+    let served = stats.served_positions.len();
+    assert!(
+        served == report.samples as usize || served == report.samples as usize + 1,
+        "served {served}, recorded {}",
+        report.samples
+    );
     assert_eq!(report.reconnects, 0);
 }
 

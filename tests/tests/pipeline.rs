@@ -491,3 +491,151 @@ fn bad_input_gives_a_named_cause_and_the_other_episodes_finish() {
     let q = read_quality(&copy.join("episodes/ep001/out/quality.json")).unwrap();
     assert_eq!(q.verdict, Verdict::Unusable);
 }
+
+/// Camera-like MP4 files of one camera of a simulated episode: every lens as an H.264 4:2:0
+/// track (constant CRF, no B-frames, the recording's frame rate) and the audio as AAC, as a
+/// camera or an exporting app writes them; the IMU beside it as a CSV in SI units.
+fn camera_mp4(episode: &Path, camera: &str, out: &Path) -> (PathBuf, PathBuf) {
+    let dir = episode.join(camera);
+    let meta = kiwi_core::layout::EpisodeLayout::new(episode)
+        .read_meta(camera)
+        .unwrap();
+    let lenses = meta.lenses;
+    // The simulator's frames are at k / fps from 0: an exact rational rate keeps them there.
+    let rate = if (meta.fps - 29.97).abs() < 1e-6 {
+        "30000/1001".to_string()
+    } else {
+        meta.fps.to_string()
+    };
+    let mp4 = out.join(format!("{camera}.mp4"));
+    let mut cmd = std::process::Command::new("ffmpeg");
+    cmd.args(["-v", "error", "-y"]);
+    for lens in &lenses {
+        cmd.args(["-framerate", &rate, "-i"])
+            .arg(dir.join(lens).join("frames/%06d.png"));
+    }
+    cmd.arg("-i").arg(dir.join("audio.wav"));
+    for i in 0..=lenses.len() {
+        cmd.args(["-map", &i.to_string()]);
+    }
+    cmd.args([
+        "-c:v", "libx264", "-crf", "12", "-bf", "0", "-pix_fmt", "yuv420p", "-c:a", "aac", "-b:a",
+        "192k",
+    ])
+    .arg(&mp4);
+    let status = cmd.status().expect("ffmpeg (make deps installs it)");
+    assert!(status.success(), "ffmpeg failed for {}", dir.display());
+    let imu = out.join(format!("{camera}-imu.csv"));
+    std::fs::copy(dir.join("imu.csv"), &imu).unwrap();
+    (mp4, imu)
+}
+
+#[test]
+#[ignore = "heavy (the shared session's run, then the same session as camera MP4 files ingested and run again: about 40 CPU-minutes): cargo test --workspace --test pipeline -- --ignored"]
+fn a_session_ingested_from_camera_mp4_files_reconstructs_like_the_png_session() {
+    use kiwi_backend::ingest::{CameraInput, IngestOptions, ingest_episode};
+    let png = shared_run();
+    let root = png.parent().unwrap().to_path_buf();
+    let source = root.join("session");
+    let mp4_session = root.join("mp4");
+    let lock = std::fs::File::create(root.join(".mp4-lock")).unwrap();
+    lock.lock().unwrap();
+    if !root.join("mp4-ran").is_file() {
+        let _ = std::fs::remove_dir_all(&mp4_session);
+        std::fs::create_dir_all(&mp4_session).unwrap();
+        std::fs::copy(
+            source.join("session.toml"),
+            mp4_session.join("session.toml"),
+        )
+        .unwrap();
+        copy_tree(&source.join("units"), &mp4_session.join("units"));
+        let files = root.join("mp4-files");
+        let toml = mp4_session.join("session.toml");
+        let options = IngestOptions {
+            resolution: 480,
+            ..IngestOptions::default()
+        };
+        for episode in ["ep000", "ep001", "ep002", "ep003"] {
+            let ep = source.join("episodes").join(episode);
+            let out = files.join(episode);
+            std::fs::create_dir_all(&out).unwrap();
+            let inputs: Vec<CameraInput> = ["left", "right", "head"]
+                .iter()
+                .map(|camera| {
+                    let (mp4, imu) = camera_mp4(&ep, camera, &out);
+                    CameraInput {
+                        camera: (*camera).into(),
+                        files: vec![mp4],
+                        imu_csv: Some(imu),
+                    }
+                })
+                .collect();
+            let report = ingest_episode(&toml, episode, &inputs, &options).unwrap();
+            println!("ingested {episode}: {report:?}");
+            // The truth stays beside the episode for the comparison only (no stage reads it).
+            copy_tree(
+                &ep.join("truth"),
+                &mp4_session.join("episodes").join(episode).join("truth"),
+            );
+        }
+        let _ = std::fs::remove_dir_all(&files);
+        let ctx = SessionContext::load(&toml).unwrap();
+        let started = std::time::Instant::now();
+        let report = run(&ctx, &RunOptions::default(), &NoProgress).unwrap();
+        println!(
+            "pipeline on the MP4 session: {:.1} s, {:?}",
+            started.elapsed().as_secs_f64(),
+            report.counts
+        );
+        std::fs::write(root.join("mp4-ran"), b"ok").unwrap();
+    }
+    lock.unlock().unwrap();
+
+    let (a_png, a_mp4) = (alignment(&png), alignment(&mp4_session));
+    let mut failures = Vec::new();
+    let mut rows = Vec::new();
+    for episode in ["ep001", "ep002", "ep003"] {
+        for camera in ["left", "right"] {
+            let p = tip_errors(&png, episode, camera, &a_png, None);
+            let m = tip_errors(&mp4_session, episode, camera, &a_mp4, None);
+            let (pm, pp) = median_p95(p.position.clone());
+            let (mm, mp) = median_p95(m.position.clone());
+            println!(
+                "{episode} {camera}: PNG {} frames, median {:.1} mm, p95 {:.1} mm | MP4 {} frames, \
+                 median {:.1} mm, p95 {:.1} mm",
+                p.frames,
+                pm * 1e3,
+                pp * 1e3,
+                m.frames,
+                mm * 1e3,
+                mp * 1e3
+            );
+            if p.frames != m.frames {
+                failures.push(format!(
+                    "{episode} {camera}: {} frames out of the MP4 session, {} of the PNG one",
+                    m.frames, p.frames
+                ));
+            }
+            rows.push((pm, mm));
+        }
+    }
+    let png_mean = rows.iter().map(|r| r.0).sum::<f64>() / rows.len() as f64;
+    let mp4_mean = rows.iter().map(|r| r.1).sum::<f64>() / rows.len() as f64;
+    println!(
+        "mean tool-tip median: PNG {:.2} mm, MP4 {:.2} mm ({:+.1} %)",
+        png_mean * 1e3,
+        mp4_mean * 1e3,
+        (mp4_mean / png_mean - 1.0) * 100.0
+    );
+    if mp4_mean > png_mean * (1.0 + MP4_WORSE_FRACTION) {
+        failures.push(format!(
+            "the MP4 path is more than {} % worse",
+            MP4_WORSE_FRACTION * 100.0
+        ));
+    }
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
+}
+
+/// The generic MP4 path may cost at most this fraction of the PNG session's mean tool-tip
+/// median (the issue's acceptance: within 10 %).
+const MP4_WORSE_FRACTION: f64 = 0.10;

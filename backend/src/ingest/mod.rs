@@ -567,6 +567,10 @@ fn ingest_camera(
             ));
         }
     };
+    // A log in other units than the flags said (or a misread record) stops here, naming the
+    // input, rather than at the first stage that reads imu.csv.
+    let imu_source = input_files.imu_csv.as_deref().unwrap_or(first);
+    kiwi_core::imu::check_imu_samples(imu_source, &samples)?;
     write_imu_csv(&layout.imu_csv(camera), &samples)?;
 
     // Exposure times.

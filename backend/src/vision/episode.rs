@@ -44,10 +44,13 @@ pub struct LensStream {
     pub lens: String,
     /// The lens's calibrated model.
     pub camera: Camera,
-    /// `frames.csv`.
+    /// The frames this stream processes: `frames.csv`'s rows, or the part [`LensStream::select`]
+    /// kept.
     pub frames: Vec<FrameRecord>,
     /// The frames themselves (images or video).
     pub source: FrameSource,
+    /// Index in `source` of each of `frames`.
+    source_index: Vec<usize>,
     /// Features allowed where non-zero: the lens's field of view, intersected with a static
     /// mask if one was given.
     pub mask: Mask,
@@ -152,10 +155,20 @@ impl LensStream {
             camera_name: camera_name.into(),
             lens: lens.into(),
             camera,
+            source_index: (0..frames.len()).collect(),
             frames,
             source,
             mask,
         })
+    }
+
+    /// Keep only the frames `keep` (positions in the current [`LensStream::frames`], strictly
+    /// increasing): a window or a subsampling of the stream.
+    pub fn select(&mut self, keep: &[usize]) -> Result<()> {
+        crate::frames::check_increasing_below(self.source.lens_dir(), keep, self.frames.len())?;
+        self.frames = keep.iter().map(|&k| self.frames[k].clone()).collect();
+        self.source_index = keep.iter().map(|&k| self.source_index[k]).collect();
+        Ok(())
     }
 
     /// The episode's folder name.
@@ -171,7 +184,10 @@ impl LensStream {
         if (image.width, image.height) == (w, h) {
             return Ok(());
         }
-        let file = self.frames.get(i).map_or_else(String::new, |f| f.file.clone());
+        let file = self
+            .frames
+            .get(i)
+            .map_or_else(String::new, |f| f.file.clone());
         Err(input_err(
             &self.source.lens_dir().join(file),
             format!(
@@ -186,7 +202,13 @@ impl LensStream {
 
     /// Decode frame `i`, checking it has the calibrated lens's size.
     pub fn load(&self, i: usize) -> Result<GrayImage> {
-        let image = self.source.load_gray(i)?;
+        let Some(&j) = self.source_index.get(i) else {
+            return Err(input_err(
+                self.source.lens_dir(),
+                format!("frame {i} asked for, the stream has {}", self.frames.len()),
+            ));
+        };
+        let image = self.source.load_gray(j)?;
         self.check_size(i, &image)?;
         Ok(image)
     }
@@ -195,14 +217,12 @@ impl LensStream {
     /// thread while `f` runs ([`FrameSource::for_each_gray`]), so decoding overlaps the vision;
     /// `f` still sees every frame in order, so results do not depend on the thread count. Stops
     /// at the first error (decoding or `f`).
-    pub fn for_each_frame(
-        &self,
-        mut f: impl FnMut(usize, GrayImage) -> Result<()>,
-    ) -> Result<()> {
-        self.source.for_each_gray(|i, image| {
-            self.check_size(i, &image)?;
-            f(i, image)
-        })
+    pub fn for_each_frame(&self, mut f: impl FnMut(usize, GrayImage) -> Result<()>) -> Result<()> {
+        self.source
+            .for_each_gray_at(&self.source_index, |i, image| {
+                self.check_size(i, &image)?;
+                f(i, image)
+            })
     }
 }
 
@@ -595,6 +615,7 @@ mod tests {
             camera_name: "left".into(),
             lens: "front".into(),
             camera,
+            source_index: (0..frames.len()).collect(),
             frames,
             source,
             mask,

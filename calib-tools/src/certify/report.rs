@@ -386,8 +386,8 @@ pub fn unit_leftovers(unit_dir: &Path) -> Vec<Leftover> {
     out
 }
 
-/// Every leftover of killed certifications under `units/`.
-pub fn list_leftovers(units_dir: &Path) -> Result<Vec<Leftover>> {
+/// The unit folders under `units/`, sorted.
+fn unit_dirs(units_dir: &Path) -> Result<Vec<PathBuf>> {
     let entries = std::fs::read_dir(units_dir).map_err(|e| CalibError::Input {
         path: units_dir.to_path_buf(),
         message: format!("cannot list units: {e}; give the units/ folder certify wrote into"),
@@ -398,6 +398,12 @@ pub fn list_leftovers(units_dir: &Path) -> Result<Vec<Leftover>> {
         .filter(|p| p.is_dir())
         .collect();
     dirs.sort();
+    Ok(dirs)
+}
+
+/// Every leftover of killed certifications under `units/`.
+pub fn list_leftovers(units_dir: &Path) -> Result<Vec<Leftover>> {
+    let dirs = unit_dirs(units_dir)?;
     Ok(dirs.iter().flat_map(|d| unit_leftovers(d)).collect())
 }
 
@@ -488,16 +494,7 @@ pub fn unit_sets(unit_dir: &Path) -> Result<Vec<SetSummary>> {
 
 /// Every unit under `units/` with its sets.
 pub fn list_units(units_dir: &Path) -> Result<Vec<SetSummary>> {
-    let entries = std::fs::read_dir(units_dir).map_err(|e| CalibError::Input {
-        path: units_dir.to_path_buf(),
-        message: format!("cannot list units: {e}; give the units/ folder certify wrote into"),
-    })?;
-    let mut dirs: Vec<PathBuf> = entries
-        .filter_map(std::result::Result::ok)
-        .map(|e| e.path())
-        .filter(|p| p.is_dir())
-        .collect();
-    dirs.sort();
+    let dirs = unit_dirs(units_dir)?;
     let mut out = Vec::new();
     for d in dirs {
         out.extend(unit_sets(&d)?);
