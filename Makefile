@@ -3,8 +3,10 @@ SHELL := /bin/bash
 .DEFAULT_GOAL := help
 
 # System packages the build and the tools need (Debian names). `make deps` installs the missing ones.
-APT_PACKAGES := libopencv-dev clang libclang-dev libudev-dev pkg-config ffmpeg openscad python3-pip
-# Python modules the export tests read datasets back with (independent readers).
+APT_PACKAGES := libopencv-dev clang libclang-dev libudev-dev pkg-config ffmpeg openscad
+# Python modules the export tests read datasets back with (independent readers), installed with
+# pip for the `python3` on PATH: Debian 12 has no python3-pyarrow, and Debian's python3-* packages
+# serve only /usr/bin/python3, which need not be the `python3` the tests run.
 PY_MODULES := pyarrow pandas zarr
 # Only for `make hardware-renders` (OpenSCAD's PNG export needs an X display).
 RENDER_PACKAGES := xvfb xauth
@@ -34,10 +36,17 @@ deps:
 	  $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq --no-install-recommends $$missing; \
 	else echo "system packages present"; fi
 	@missing=""; for m in $(PY_MODULES); do python3 -c "import $$m" 2>/dev/null || missing="$$missing $$m"; done; \
-	if [ -n "$$missing" ]; then \
-	  echo "installing Python modules:$$missing"; \
-	  python3 -m pip install --quiet $$missing 2>/dev/null || python3 -m pip install --quiet --break-system-packages $$missing; \
-	else echo "Python modules present"; fi
+	if [ -z "$$missing" ]; then echo "Python modules present"; exit 0; fi; \
+	echo "installing Python modules:$$missing"; \
+	SUDO=""; [ "$$(id -u)" = 0 ] || SUDO=sudo; \
+	if ! python3 -m pip --version >/dev/null 2>&1; then \
+	  $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq --no-install-recommends python3-pip; \
+	fi; \
+	flags=""; \
+	if python3 -c 'import os, sysconfig, sys; sys.exit(0 if os.path.exists(os.path.join(sysconfig.get_path("stdlib"), "EXTERNALLY-MANAGED")) else 1)'; then \
+	  flags="--break-system-packages"; \
+	fi; \
+	python3 -m pip install --quiet --disable-pip-version-check $$flags $$missing
 
 build: deps
 	cargo build --release --workspace --bins
