@@ -35,11 +35,14 @@ const RATE_SLACK: f64 = 1e-3;
 const NTSC_MATCH: f64 = 1e-4;
 /// A grid time this far past a trajectory's last frame is that frame (rounding of `k/fps`).
 const GRID_SLACK_S: f64 = 1e-6;
+/// Frames whose gripper opening was not measured are bridged linearly between measured frames
+/// at most this far from the row (s): a few missed detections, not a hand closing unseen.
+const MAX_OPENING_GAP_S: f64 = 0.5;
 /// The rates an export may be asked for (Hz).
 const MAX_EXPORT_FPS: f64 = 1000.0;
 
 /// The dataset formats `kiwi export` writes.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub enum ExportFormat {
     /// LeRobot v3.0 (parquet + mp4).
     LeRobot,
@@ -47,6 +50,17 @@ pub enum ExportFormat {
     Umi,
     /// KIWI's full-detail sidecar.
     Sidecar,
+}
+
+impl ExportFormat {
+    /// `lerobot`, `umi` or `sidecar`: the name on the command line and in `session.toml`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::LeRobot => "lerobot",
+            Self::Umi => "umi",
+            Self::Sidecar => "sidecar",
+        }
+    }
 }
 
 impl std::str::FromStr for ExportFormat {
@@ -113,9 +127,11 @@ impl Rate {
                 "--fps {fps}: expected a rate above 0 and at most {MAX_EXPORT_FPS} Hz"
             )));
         }
-        for den in [1u32, 1001] {
-            let num = (fps * f64::from(den)).round();
-            if num >= 1.0 && ((num / f64::from(den)) - fps).abs() <= NTSC_MATCH * fps {
+        // Integer rates `N/1`, then NTSC rates `N·1000/1001`: N whole in both.
+        for (den, unit) in [(1u32, 1.0), (1001, 1000.0)] {
+            let n = (fps * f64::from(den) / unit).round();
+            let num = n * unit;
+            if n >= 1.0 && ((num / f64::from(den)) - fps).abs() <= NTSC_MATCH * fps {
                 return Ok(Self {
                     num: num as u32,
                     den,
@@ -293,10 +309,11 @@ pub struct WristSample {
     pub tip_sigma_r_rad: f64,
     /// The weaker support class of the two frames around the row.
     pub support: SupportClass,
-    /// Gripper opening (rad or m): interpolated when both frames have one, else the one that
-    /// has it, else `None`.
+    /// Gripper opening (rad or m): linear between the nearest measured frames around the row
+    /// (within [`MAX_OPENING_GAP_S`]), else the one measured frame near it, else `None`.
     pub opening: Option<f64>,
-    /// Its confidence (the smaller of the two frames'; 0 when not measured).
+    /// Its confidence: the smaller of the two frames' around the row (0 when either was not
+    /// measured, so a bridged value is marked).
     pub opening_confidence: f64,
 }
 
@@ -326,19 +343,20 @@ impl WristTrajectory {
         let k = self
             .rows
             .partition_point(|r| r.t_session.is_some_and(|ts| ts <= t));
-        let (a, b) = match (k.checked_sub(1), self.rows.get(k)) {
-            (Some(i), _) if self.rows[i].t_session == Some(t) => (&self.rows[i], &self.rows[i]),
-            (Some(i), Some(b)) => (&self.rows[i], b),
+        let (ia, ib) = match (k.checked_sub(1), self.rows.get(k)) {
+            (Some(i), _) if self.rows[i].t_session == Some(t) => (i, i),
+            (Some(i), Some(_)) => (i, k),
             // The grid's last row may sit a rounding error after the last frame.
             (Some(i), None)
                 if self.rows[i]
                     .t_session
                     .is_some_and(|ts| t - ts <= GRID_SLACK_S) =>
             {
-                (&self.rows[i], &self.rows[i])
+                (i, i)
             }
             _ => return None,
         };
+        let (a, b) = (&self.rows[ia], &self.rows[ib]);
         let (ta, tb) = (a.t_session?, b.t_session?);
         let s = if tb > ta { (t - ta) / (tb - ta) } else { 0.0 };
         let support = if support_rank(a.support) >= support_rank(b.support) {
@@ -346,10 +364,7 @@ impl WristTrajectory {
         } else {
             b.support
         };
-        let opening = match (a.opening, b.opening) {
-            (Some(x), Some(y)) => Some(x + (y - x) * s),
-            (x, y) => x.or(y),
-        };
+        let opening = self.opening_at(ia, ib, t);
         Some(WristSample {
             scene_from_tip: interpolate_pose(&a.scene_from_tip, &b.scene_from_tip, s),
             tip_sigma_p_m: a.tip_sigma_p_m.max(b.tip_sigma_p_m),
@@ -362,6 +377,21 @@ impl WristTrajectory {
                 0.0
             },
         })
+    }
+
+    /// The gripper opening at session time `t` between rows `ia` and `ib`: linear between the
+    /// nearest measured frames at or before `ia` and at or after `ib` (bridging frames whose
+    /// opening was not measured), the one there is near an end, `None` when no frame within
+    /// [`MAX_OPENING_GAP_S`] has one.
+    fn opening_at(&self, ia: usize, ib: usize, t: f64) -> Option<f64> {
+        let measured = |r: &TrajectoryRow| Some((r.t_session?, r.opening?));
+        let near = |r: &&TrajectoryRow| r.t_session.is_some_and(|ts| (ts - t).abs() <= MAX_OPENING_GAP_S);
+        let before = self.rows[..=ia].iter().rev().take_while(near).find_map(measured);
+        let after = self.rows[ib..].iter().take_while(near).find_map(measured);
+        match (before, after) {
+            (Some((t0, x)), Some((t1, y))) if t1 > t0 => Some(x + (y - x) * (t - t0) / (t1 - t0)),
+            (before, after) => before.or(after).map(|(_, v)| v),
+        }
     }
 
     /// Median interval between frames on the session timeline (s).
@@ -866,5 +896,32 @@ pub fn export(
             let _ = std::fs::remove_dir_all(&partial);
             Err(e)
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::Rate;
+
+    #[test]
+    fn rates_snap_to_integer_and_ntsc_fractions() {
+        let r = |hz: f64| {
+            let r = Rate::from_hz(hz).unwrap();
+            (r.num, r.den)
+        };
+        assert_eq!(r(30.0), (30, 1));
+        assert_eq!(r(15.0), (15, 1));
+        assert_eq!(r(29.97), (30000, 1001));
+        assert_eq!(r(30000.0 / 1001.0), (30000, 1001));
+        // A camera 40 ppm slow on the session timeline still records 30000/1001.
+        assert_eq!(r(30000.0 / 1001.0 / (1.0 + 40e-6)), (30000, 1001));
+        assert_eq!(r(59.94), (60000, 1001));
+        assert_eq!(r(119.88), (120000, 1001));
+        // Neither: to the millihertz.
+        assert_eq!(r(12.345), (12345, 1000));
+        assert_eq!(r(29.9), (29900, 1000));
+        assert!(Rate::from_hz(0.0).is_err());
+        assert!(Rate::from_hz(f64::NAN).is_err());
+        assert!(Rate::from_hz(5000.0).is_err());
     }
 }
