@@ -385,8 +385,15 @@ impl WristTrajectory {
     /// [`MAX_OPENING_GAP_S`] has one.
     fn opening_at(&self, ia: usize, ib: usize, t: f64) -> Option<f64> {
         let measured = |r: &TrajectoryRow| Some((r.t_session?, r.opening?));
-        let near = |r: &&TrajectoryRow| r.t_session.is_some_and(|ts| (ts - t).abs() <= MAX_OPENING_GAP_S);
-        let before = self.rows[..=ia].iter().rev().take_while(near).find_map(measured);
+        let near = |r: &&TrajectoryRow| {
+            r.t_session
+                .is_some_and(|ts| (ts - t).abs() <= MAX_OPENING_GAP_S)
+        };
+        let before = self.rows[..=ia]
+            .iter()
+            .rev()
+            .take_while(near)
+            .find_map(measured);
         let after = self.rows[ib..].iter().take_while(near).find_map(measured);
         match (before, after) {
             (Some((t0, x)), Some((t1, y))) if t1 > t0 => Some(x + (y - x) * (t - t0) / (t1 - t0)),
