@@ -21,6 +21,19 @@ fn env_or(name: &str, default: f64) -> f64 {
         .unwrap_or(default)
 }
 
+/// Bytes of every file under `dir`.
+fn dir_bytes(dir: &std::path::Path) -> u64 {
+    std::fs::read_dir(dir).map_or(0, |entries| {
+        entries
+            .flatten()
+            .map(|e| match e.file_type() {
+                Ok(t) if t.is_dir() => dir_bytes(&e.path()),
+                _ => e.metadata().map_or(0, |m| m.len()),
+            })
+            .sum()
+    })
+}
+
 fn main() {
     let duration = env_or("KIWI_BENCH_DURATION", 60.0);
     let resolution = env_or("KIWI_BENCH_RESOLUTION", 480.0) as u32 & !1;
@@ -31,8 +44,7 @@ fn main() {
     };
     let tmp = tempfile::tempdir().unwrap();
     let root = std::env::var("KIWI_BENCH_DIR")
-        .map(std::path::PathBuf::from)
-        .unwrap_or_else(|_| tmp.path().to_path_buf());
+        .map_or_else(|_| tmp.path().to_path_buf(), std::path::PathBuf::from);
     let started = Instant::now();
     let session = synthetic::make_session(&spec, &root);
     println!(
@@ -61,11 +73,20 @@ fn main() {
         )
         .unwrap();
         let s = t.elapsed().as_secs_f64();
+        let bytes = dir_bytes(&out);
+        // Decoded frame data the video formats pass through (2 views, RGB).
+        let raw = match format {
+            ExportFormat::Sidecar => 0.0,
+            _ => report.frames as f64 * 2.0 * f64::from(resolution).powi(2) * 3.0,
+        };
         println!(
-            "{name:>8}: {s:7.2} s for {duration} s of recording = {:6.2} s per minute \
-             ({} rows)",
+            "{name:>8}: {s:7.2} s for {duration} s of recording = {:6.2} s per minute; \
+             {} rows = {:7.1} rows/s; frames decoded {:6.1} MB/s; output {:7.1} MB",
             s / minutes,
-            report.frames
+            report.frames,
+            report.frames as f64 / s,
+            raw / 1e6 / s,
+            bytes as f64 / 1e6
         );
     }
 }

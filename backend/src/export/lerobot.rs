@@ -463,9 +463,7 @@ fn info_json(
             }),
         );
     }
-    for key in ["timestamp"] {
-        features.insert(key.into(), scalar("float32"));
-    }
+    features.insert("timestamp".into(), scalar("float32"));
     for key in ["frame_index", "episode_index", "index", "task_index"] {
         features.insert(key.into(), scalar("int64"));
     }

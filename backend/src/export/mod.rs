@@ -817,11 +817,7 @@ pub type FrameChoice = BTreeMap<String, Vec<usize>>;
 
 /// Make `dir` fresh for an export: it must not exist yet or be empty.
 pub fn prepare_out_dir(out: &Path) -> Result<PathBuf> {
-    if out.exists()
-        && std::fs::read_dir(out)
-            .map(|mut d| d.next().is_some())
-            .unwrap_or(true)
-    {
+    if out.exists() && std::fs::read_dir(out).map_or(true, |mut d| d.next().is_some()) {
         return Err(export_err(format!(
             "{}: exists and is not empty; remove it or choose another --out",
             out.display()
@@ -829,8 +825,7 @@ pub fn prepare_out_dir(out: &Path) -> Result<PathBuf> {
     }
     let name = out
         .file_name()
-        .map(|n| n.to_string_lossy().to_string())
-        .unwrap_or_else(|| "export".into());
+        .map_or_else(|| "export".into(), |n| n.to_string_lossy().to_string());
     let partial = out.with_file_name(format!(".{name}.partial"));
     if partial.exists() {
         std::fs::remove_dir_all(&partial).map_err(|e| BackendError::Input {

@@ -24,7 +24,7 @@ pub struct Table {
     metadata: HashMap<String, String>,
 }
 
-fn table_err(message: String) -> BackendError {
+fn table_err(message: &str) -> BackendError {
     BackendError::Export(format!("building a parquet table: {message}"))
 }
 
@@ -71,9 +71,10 @@ impl Table {
     /// int64 items: what LeRobot's `Sequence(length=width)` features are in arrow.
     pub fn fixed_list(&mut self, name: &str, width: usize, values: ArrayRef) -> Result<()> {
         let item = Arc::new(Field::new("item", values.data_type().clone(), true));
-        let size = i32::try_from(width).map_err(|_| table_err(format!("{name}: width {width}")))?;
+        let size =
+            i32::try_from(width).map_err(|_| table_err(&format!("{name}: width {width}")))?;
         let list = FixedSizeListArray::try_new(item, size, values, None)
-            .map_err(|e| table_err(format!("{name}: {e}")))?;
+            .map_err(|e| table_err(&format!("{name}: {e}")))?;
         self.push(name, Arc::new(list));
         Ok(())
     }
@@ -97,20 +98,20 @@ impl Table {
     pub fn write(self, path: &Path) -> Result<()> {
         let schema = Arc::new(Schema::new_with_metadata(self.fields, self.metadata));
         let batch = RecordBatch::try_new(schema.clone(), self.columns)
-            .map_err(|e| table_err(format!("{}: {e}", path.display())))?;
+            .map_err(|e| table_err(&format!("{}: {e}", path.display())))?;
         let props = WriterProperties::builder()
             .set_compression(Compression::SNAPPY)
             .build();
         let mut bytes = Vec::new();
         {
             let mut writer = ArrowWriter::try_new(&mut bytes, schema, Some(props))
-                .map_err(|e| table_err(format!("{}: {e}", path.display())))?;
+                .map_err(|e| table_err(&format!("{}: {e}", path.display())))?;
             writer
                 .write(&batch)
-                .map_err(|e| table_err(format!("{}: {e}", path.display())))?;
+                .map_err(|e| table_err(&format!("{}: {e}", path.display())))?;
             writer
                 .close()
-                .map_err(|e| table_err(format!("{}: {e}", path.display())))?;
+                .map_err(|e| table_err(&format!("{}: {e}", path.display())))?;
         }
         kiwi_core::io::write_atomic(path, &bytes)?;
         Ok(())

@@ -21,7 +21,7 @@ const CRF: u32 = 18;
 /// Pixel format every decoder reads.
 pub const PIX_FMT: &str = "yuv420p";
 
-fn video_err(path: &Path, message: String) -> BackendError {
+fn video_err(path: &Path, message: &str) -> BackendError {
     BackendError::Export(format!("{}: {message}", path.display()))
 }
 
@@ -64,7 +64,7 @@ impl Encoder {
             .map_err(|e| {
                 video_err(
                     path,
-                    format!(
+                    &format!(
                         "cannot start ffmpeg ({e}): install it (`make deps`, Debian package \
                          ffmpeg)"
                     ),
@@ -83,18 +83,18 @@ impl Encoder {
         if frame.width != self.width || frame.height != self.height {
             return Err(video_err(
                 path,
-                format!(
+                &format!(
                     "frame of {}x{} px in a stream of {}x{}",
                     frame.width, frame.height, self.width, self.height
                 ),
             ));
         }
         let Some(stdin) = self.stdin.as_mut() else {
-            return Err(video_err(path, "ffmpeg's input is closed".into()));
+            return Err(video_err(path, "ffmpeg's input is closed"));
         };
         stdin
             .write_all(&frame.bgr)
-            .map_err(|e| video_err(path, format!("ffmpeg stopped reading frames: {e}")))
+            .map_err(|e| video_err(path, &format!("ffmpeg stopped reading frames: {e}")))
     }
 
     fn finish(mut self, path: &Path) -> Result<()> {
@@ -106,11 +106,11 @@ impl Encoder {
         let status = self
             .child
             .wait()
-            .map_err(|e| video_err(path, format!("ffmpeg did not finish: {e}")))?;
+            .map_err(|e| video_err(path, &format!("ffmpeg did not finish: {e}")))?;
         if !status.success() {
             return Err(video_err(
                 path,
-                format!("ffmpeg failed ({status}): {}", stderr.trim()),
+                &format!("ffmpeg failed ({status}): {}", stderr.trim()),
             ));
         }
         Ok(())
@@ -137,7 +137,7 @@ pub fn encode_frames(
     path: &Path,
 ) -> Result<(usize, usize)> {
     if picks.windows(2).any(|w| w[1] < w[0]) {
-        return Err(video_err(path, "frames must be chosen in order".into()));
+        return Err(video_err(path, "frames must be chosen in order"));
     }
     let (width, height) = source.resolution()?;
     let (width, height) = (width as usize, height as usize);
@@ -162,7 +162,7 @@ pub fn encode_frames(
     if next != picks.len() {
         return Err(video_err(
             path,
-            format!(
+            &format!(
                 "the lens stream ended after {next} of {} frames",
                 picks.len()
             ),
