@@ -4,6 +4,10 @@ SHELL := /bin/bash
 
 # System packages the build and the tools need (Debian names). `make deps` installs the missing ones.
 APT_PACKAGES := libopencv-dev clang libclang-dev libudev-dev pkg-config ffmpeg openscad
+# Python modules the export tests read datasets back with (independent readers), installed with
+# pip for the `python3` on PATH: Debian 12 has no python3-pyarrow, and Debian's python3-* packages
+# serve only /usr/bin/python3, which need not be the `python3` the tests run.
+PY_MODULES := pyarrow pandas zarr
 # Only for `make hardware-renders` (OpenSCAD's PNG export needs an X display).
 RENDER_PACKAGES := xvfb xauth
 HARDWARE_OUT ?= build/hardware
@@ -20,7 +24,7 @@ help:
 	@echo "make demo   certify two simulated units, record a session with them and run kiwi run on it (installs what it needs)"
 	@echo "make test   formatting, lints and every test"
 	@echo "make bench  benchmarks (release build)"
-	@echo "make deps   install the system packages the build needs (apt)"
+	@echo "make deps   install the system packages the build needs (apt) and the Python modules the export tests read datasets with (pip)"
 	@echo "make hardware  regenerate params.scad and the tool definitions, render every printed part to STL ($(HARDWARE_OUT)) and check it"
 	@echo "make hardware-renders  the PNG renders in docs/hardware/ (installs xvfb)"
 
@@ -31,6 +35,18 @@ deps:
 	  SUDO=""; [ "$$(id -u)" = 0 ] || SUDO=sudo; \
 	  $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq --no-install-recommends $$missing; \
 	else echo "system packages present"; fi
+	@missing=""; for m in $(PY_MODULES); do python3 -c "import $$m" 2>/dev/null || missing="$$missing $$m"; done; \
+	if [ -z "$$missing" ]; then echo "Python modules present"; exit 0; fi; \
+	echo "installing Python modules:$$missing"; \
+	SUDO=""; [ "$$(id -u)" = 0 ] || SUDO=sudo; \
+	if ! python3 -m pip --version >/dev/null 2>&1; then \
+	  $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq --no-install-recommends python3-pip; \
+	fi; \
+	flags=""; \
+	if python3 -c 'import os, sysconfig, sys; sys.exit(0 if os.path.exists(os.path.join(sysconfig.get_path("stdlib"), "EXTERNALLY-MANAGED")) else 1)'; then \
+	  flags="--break-system-packages"; \
+	fi; \
+	python3 -m pip install --quiet --disable-pip-version-check $$flags $$missing
 
 build: deps
 	cargo build --release --workspace --bins
@@ -67,6 +83,7 @@ bench: deps
 	cargo bench -p kiwi-backend --bench fuse
 	cargo bench -p kiwi-backend --bench vision
 	cargo bench -p kiwi-backend --bench frames
+	cargo bench -p kiwi-backend --bench export
 
 hardware: deps
 	cargo run --release -p kiwi-calib -- hardware generate

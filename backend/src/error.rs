@@ -83,6 +83,9 @@ pub enum BackendError {
         /// What to do.
         fix: String,
     },
+    /// A dataset export cannot be made as asked (what is wrong and what to do).
+    #[error("{0}")]
+    Export(String),
     /// A computer-vision step failed (feature extraction, geometry, bundle adjustment, maps).
     #[error("{context}: {message}")]
     Vision {

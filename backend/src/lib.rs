@@ -6,9 +6,11 @@
 //! [`quality`] (the deliverables and how far to trust them). [`pipeline`] runs them as one
 //! graph (`kiwi run`); [`formats`] holds the files the stages exchange; [`frames`] reads a lens
 //! stream's frames (images or video) for every stage; [`ingest`] turns camera files into a
-//! prepared episode; [`inspect`] checks a session before anything runs.
+//! prepared episode; [`inspect`] checks a session before anything runs; [`export`] writes the outputs as datasets
+//! (LeRobot v3.0, UMI, KIWI's sidecar).
 
 pub mod error;
+pub mod export;
 pub mod formats;
 pub mod frames;
 pub mod fusion;

@@ -235,7 +235,8 @@ pub struct QualityRecord {
     pub map_episode: String,
 }
 
-fn session_time(clock: Option<&crate::sync::CameraClock>, t: f64) -> Option<f64> {
+/// A camera-clock time on the session timeline (`None` when the camera is not on it).
+pub(crate) fn session_time(clock: Option<&crate::sync::CameraClock>, t: f64) -> Option<f64> {
     clock
         .filter(|c| c.status != CameraStatus::Unmatched)
         .and_then(|c| {

@@ -207,6 +207,7 @@ fn session(dir: &Path, head: bool) -> PathBuf {
             name: "ep000".into(),
             description: String::new(),
         }],
+        export: None,
     };
     std::fs::create_dir_all(dir.join("episodes")).unwrap();
     let toml = dir.join("session.toml");

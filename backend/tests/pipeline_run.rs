@@ -223,6 +223,84 @@ fn an_unmappable_map_episode_makes_every_episode_unusable_and_says_why() {
 }
 
 #[test]
+fn the_export_stage_follows_every_episode_and_names_the_ones_it_leaves_out() {
+    let tmp = tempfile::tempdir().unwrap();
+    // Cheap and fast: the map episode cannot be mapped, so every episode is unusable.
+    let cover = Cover::parse("0:left:rear:0:3").unwrap();
+    let mut o = SessionOptions::new(tmp.path().join("s"));
+    o.seed = 9;
+    o.resolution = 160;
+    o.rate_hz = 10.0;
+    o.episodes = 2;
+    o.duration_s = 3.0;
+    o.head = false;
+    o.covers = vec![cover];
+    let toml = write_session(&o).unwrap().session_toml;
+    let mut text = std::fs::read_to_string(&toml).unwrap();
+    text.push_str("\n[export]\nformats = [\"lerobot\", \"sidecar\"]\n");
+    std::fs::write(&toml, text).unwrap();
+    let stage = |report: &serde_json::Value, name: &str| {
+        report["stages"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|s| s["stage"] == name)
+            .cloned()
+    };
+
+    // A run of some episodes does not rewrite the session's datasets.
+    let out = Command::new(KIWI)
+        .args(["run", "--json", "--episodes", "ep001", "--session"])
+        .arg(&toml)
+        .output()
+        .unwrap();
+    let report: serde_json::Value = serde_json::from_slice(&out.stdout)
+        .unwrap_or_else(|e| panic!("{e}: {}", String::from_utf8_lossy(&out.stderr)));
+    assert!(stage(&report, "session/export-lerobot").is_none());
+
+    // A run of every episode: the exports run (failed episodes do not block them), leave each
+    // unusable episode out with its reason, and fail as nothing is left.
+    let out = Command::new(KIWI)
+        .args(["run", "--json", "--session"])
+        .arg(&toml)
+        .output()
+        .unwrap();
+    let report: serde_json::Value = serde_json::from_slice(&out.stdout)
+        .unwrap_or_else(|e| panic!("{e}: {}", String::from_utf8_lossy(&out.stderr)));
+    for name in ["session/export-lerobot", "session/export-sidecar"] {
+        let s = stage(&report, name).unwrap_or_else(|| panic!("no {name} in {report}"));
+        let reason = s.to_string();
+        assert!(
+            reason.contains("failed")
+                && reason.contains("no episode")
+                && reason.contains("ep000: verdict unusable")
+                && reason.contains("ep001: verdict unusable")
+                && reason.contains("map-rear"),
+            "{name}: {s}"
+        );
+    }
+    assert!(
+        !toml.parent().unwrap().join("exports/lerobot").exists(),
+        "a failed export publishes nothing"
+    );
+    // A session.toml naming an unknown format is refused, naming the field.
+    let mut text = std::fs::read_to_string(&toml).unwrap();
+    text = text.replace("\"sidecar\"", "\"rlds\"");
+    std::fs::write(&toml, text).unwrap();
+    let out = Command::new(KIWI)
+        .args(["run", "--session"])
+        .arg(&toml)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(
+        err.contains("export.formats[1]") && err.contains("rlds"),
+        "{err}"
+    );
+}
+
+#[test]
 fn run_refuses_unknown_stages_and_episodes_naming_them() {
     let tmp = tempfile::tempdir().unwrap();
     let mut o = SessionOptions::new(tmp.path().join("s"));

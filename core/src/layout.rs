@@ -126,6 +126,27 @@ pub struct Session {
     pub head: Option<HeadConfig>,
     /// Episodes in recording order.
     pub episodes: Vec<EpisodeConfig>,
+    /// Datasets `kiwi run` exports after the episodes' outputs (none when absent).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub export: Option<ExportConfig>,
+}
+
+/// The dataset formats an `[export]` table may name.
+pub const EXPORT_FORMATS: [&str; 3] = ["lerobot", "umi", "sidecar"];
+
+/// `[export]` of `session.toml`: the datasets `kiwi run` writes into `exports/<format>/` once
+/// every episode's outputs are current (the options of `kiwi export`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ExportConfig {
+    /// Formats to write: any of [`EXPORT_FORMATS`].
+    pub formats: Vec<String>,
+    /// Output rate (Hz) of the resampled formats [default: the slowest source's rate].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub fps: Option<f64>,
+    /// Views as `camera.lens` [default: every wrist's front lens and the head camera's lenses].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub views: Option<Vec<String>>,
 }
 
 /// Parse `session.toml` text; an error names the field (`wrists.left.tool`) and its line.
@@ -273,6 +294,28 @@ impl Session {
                 h.marker_size_m.to_string(),
                 "marker sizes are in metres (58 mm = 0.058)",
             ));
+        }
+        if let Some(x) = &self.export {
+            for (i, f) in x.formats.iter().enumerate() {
+                if !EXPORT_FORMATS.contains(&f.as_str()) || x.formats[..i].contains(f) {
+                    return Err(CoreError::invalid_value(
+                        format!("export.formats[{i}]"),
+                        format!("one of {} (each once)", EXPORT_FORMATS.join(", ")),
+                        format!("`{f}`"),
+                        "name each dataset format once, or remove the [export] table",
+                    ));
+                }
+            }
+            if let Some(fps) = x.fps
+                && !(fps.is_finite() && fps > 0.0)
+            {
+                return Err(CoreError::invalid_value(
+                    "export.fps",
+                    "a rate in Hz above 0",
+                    fps.to_string(),
+                    "remove it to export at the recording's own rate",
+                ));
+            }
         }
         Ok(())
     }

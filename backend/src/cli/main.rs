@@ -3,6 +3,7 @@
 use anyhow::Result;
 use clap::{Parser, Subcommand};
 
+mod export;
 mod fuse;
 mod gripper;
 mod ingest;
@@ -74,6 +75,10 @@ enum Command {
     /// video plus an IMU CSV. Lenses are resized to the processing resolution and stored as a
     /// video (or PNGs); frame times come from the container, audio.wav starts at video time 0.
     Ingest(ingest::IngestArgs),
+    /// Write a session's episodes as a dataset robot-learning tools load as they are: a
+    /// LeRobot v3.0 dataset (parquet + mp4), UMI's dataset.zarr.zip, or KIWI's full-detail
+    /// sidecar. Episodes whose verdict is unusable are left out with the reason.
+    Export(export::ExportArgs),
 }
 
 /// Split `NAME=VALUE`.
@@ -94,6 +99,7 @@ fn output(command: &Command) -> Option<&std::path::Path> {
         Command::Localize(a) => Some(&a.out),
         Command::Gripper(a) => a.out.as_deref(),
         Command::Ingest(a) => Some(&a.session),
+        Command::Export(a) => Some(&a.out),
         Command::Run(_) | Command::Status(_) | Command::Sync(_) | Command::Inspect(_) => None,
     }
 }
@@ -127,6 +133,7 @@ fn main() -> Result<()> {
         Command::Gripper(args) => gripper::run_gripper(&args)?,
         Command::Inspect(args) => inspect::run_inspect_cmd(args)?,
         Command::Ingest(args) => ingest::run_ingest_cmd(&args)?,
+        Command::Export(args) => export::run_export_cmd(&args)?,
     }
     Ok(())
 }

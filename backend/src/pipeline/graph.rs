@@ -10,10 +10,16 @@
 //! updates) → `observations-<wrist>` (eq. 3) → `fusion-<wrist>` (eq. 4) → `gripper-<wrist>` →
 //! `outputs` (tool tip on the session timeline, TUM files, `quality.json`).
 //!
-//! Stages for head pose, the floor reference, dataset exports and the report attach after
-//! `fusion-<wrist>` / `outputs` in [`build`] (each with its own family name), in the same way.
+//! Per session, when `session.toml` has an `[export]` table and the run covers every episode:
+//! `export-<format>` (a dataset of every usable episode, from the episodes' published `out/`),
+//! after every episode's `outputs`.
+//!
+//! Stages for head pose, the floor reference and the report attach after `fusion-<wrist>` /
+//! `outputs` in [`build`] (each with its own family name), in the same way.
 
 use kiwi_core::layout::Side;
+
+use crate::export::ExportFormat;
 
 use super::context::SessionContext;
 use super::stage::StageId;
@@ -127,6 +133,12 @@ pub enum StageKind {
         /// Episode.
         episode: String,
     },
+    /// A dataset of the session's usable episodes in one format (`[export]` of
+    /// `session.toml`), published as `exports/<format>/`.
+    Export {
+        /// The dataset format.
+        format: ExportFormat,
+    },
 }
 
 /// One node of the graph.
@@ -168,11 +180,12 @@ pub fn id_of(kind: &StageKind) -> StageId {
             StageId::episode(episode, format!("gripper-{}", side.camera_name()))
         }
         StageKind::Outputs { episode } => StageId::episode(episode, "outputs"),
+        StageKind::Export { format } => StageId::session(format!("export-{}", format.name())),
     }
 }
 
 /// Stage families a user can name in `--from`, `--force` and `kiwi status`.
-pub const FAMILIES: [&str; 10] = [
+pub const FAMILIES: [&str; 11] = [
     "sync",
     "map",
     "tool",
@@ -183,6 +196,7 @@ pub const FAMILIES: [&str; 10] = [
     "fusion",
     "gripper",
     "outputs",
+    "export",
 ];
 
 /// The graph for `episodes` (the session's stages and the map episode's localizations are
@@ -333,6 +347,28 @@ pub fn build(ctx: &SessionContext, episodes: &[String]) -> Vec<StageNode> {
             },
             deps,
         );
+    }
+
+    // Session: dataset exports, only on a run of every episode (a run of some episodes must
+    // not rewrite a dataset of all of them with a part).
+    let all = ctx.episode_names();
+    if let Some(config) = &ctx.session.export
+        && all.iter().all(|e| episodes.contains(e))
+    {
+        let deps: Vec<StageId> = all
+            .iter()
+            .map(|episode| {
+                id_of(&StageKind::Outputs {
+                    episode: episode.clone(),
+                })
+            })
+            .collect();
+        for name in &config.formats {
+            // `Session::validate` admits only the known names.
+            if let Ok(format) = name.parse::<ExportFormat>() {
+                push(StageKind::Export { format }, deps.clone());
+            }
+        }
     }
     order(nodes)
 }

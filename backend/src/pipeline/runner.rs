@@ -443,8 +443,12 @@ fn execute(
     pool: &rayon::ThreadPool,
     progress: &dyn Progress,
 ) -> (Decided, Outcome) {
-    if let Some((dep, Decided::Broken(reason))) =
-        deps.iter().find(|(_, d)| matches!(d, Decided::Broken(_)))
+    // An export leaves a failed episode out (its published quality.json says why) rather than
+    // fail with it.
+    let tolerates_broken = matches!(node.kind, StageKind::Export { .. });
+    if let Some((dep, Decided::Broken(reason))) = deps
+        .iter()
+        .find(|(_, d)| matches!(d, Decided::Broken(_)) && !tolerates_broken)
     {
         let reason = if reason.starts_with("needs ") {
             reason.clone()
@@ -527,11 +531,15 @@ fn execute(
     (decided, outcome)
 }
 
+/// The session sub-folder the export stages publish their datasets in (`exports/<format>/`).
+pub const EXPORTS_DIR: &str = "exports";
+
 /// Where a stage's published sub-folder goes: the outputs stage's `out/` becomes the episode's
-/// `out/`.
+/// `out/`, an export stage's `out/` becomes `exports/<format>/`.
 fn published_target(ctx: &SessionContext, node: &StageNode) -> Option<PathBuf> {
     match &node.kind {
         StageKind::Outputs { episode } => Some(ctx.episode(episode).root().join(PUBLISHED_DIR)),
+        StageKind::Export { format } => Some(ctx.root.join(EXPORTS_DIR).join(format.name())),
         _ => None,
     }
 }

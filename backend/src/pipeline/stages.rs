@@ -70,6 +70,7 @@ pub fn version(kind: &StageKind) -> &'static str {
         StageKind::Fusion { .. } => "fusion-3",
         StageKind::Gripper { .. } => "gripper-1",
         StageKind::Outputs { .. } => "outputs-1",
+        StageKind::Export { .. } => "export-1",
     }
 }
 
@@ -316,7 +317,64 @@ pub fn inputs(ctx: &SessionContext, kind: &StageKind) -> Result<Vec<InputDigest>
             }
             v
         }
+        StageKind::Export { .. } => export_inputs(ctx)?,
     })
+}
+
+/// What an export reads besides the episodes' outputs: the `[export]` settings,
+/// `session.toml`, the calibrations, and in every episode each camera's `meta.json` and the
+/// lens streams that are views of the dataset (the named views, else every wrist's front lens
+/// and the head camera's lenses).
+fn export_inputs(ctx: &SessionContext) -> Result<Vec<InputDigest>> {
+    let settings = serde_json::to_string(&ctx.session.export).unwrap_or_default();
+    let mut v = vec![
+        InputDigest {
+            name: "export settings".into(),
+            path: "session.toml [export]".into(),
+            digest: sha256_bytes(settings.as_bytes()),
+        },
+        file_input(ctx, "session".into(), &ctx.toml)?,
+    ];
+    for w in ctx.wrists.values() {
+        v.push(calibration_input(ctx, w)?);
+    }
+    if let Some(h) = &ctx.session.head {
+        v.push(file_input(
+            ctx,
+            "calibration head".into(),
+            &ctx.root.join(&h.calibration).join("calibration.json"),
+        )?);
+    }
+    let named = ctx.session.export.as_ref().and_then(|x| x.views.clone());
+    for episode in ctx.episode_names() {
+        let layout = ctx.episode(&episode);
+        for camera in ctx.session.camera_names() {
+            let meta = layout.meta_json(camera);
+            if !meta.is_file() {
+                // A camera an episode lacks: the export names it when it matters.
+                continue;
+            }
+            v.push(file_input(ctx, format!("{episode} meta {camera}"), &meta)?);
+            let lenses: Vec<String> = match &named {
+                Some(views) => views
+                    .iter()
+                    .filter_map(|n| n.split_once('.'))
+                    .filter(|(c, _)| *c == camera)
+                    .map(|(_, l)| l.to_string())
+                    .collect(),
+                None if camera == "head" => layout.read_meta(camera)?.lenses,
+                None => vec!["front".into()],
+            };
+            for lens in lenses {
+                if layout.frames_csv(camera, &lens).is_file() {
+                    let mut d = stream_input(ctx, &layout, camera, &lens)?;
+                    d.name = format!("{episode} {}", d.name);
+                    v.push(d);
+                }
+            }
+        }
+    }
+    Ok(v)
 }
 
 /// The wrist and lens a map is built from.
@@ -387,7 +445,27 @@ pub fn run(env: &StageEnv<'_>, kind: &StageKind) -> Result<()> {
         StageKind::Fusion { episode, side } => run_fusion(env, episode, *side),
         StageKind::Gripper { episode, side } => run_gripper(env, episode, *side),
         StageKind::Outputs { episode } => run_outputs(env, episode),
+        StageKind::Export { format } => run_export(env, *format),
     }
+}
+
+/// A dataset of every usable episode, written into the stage's `out/` (published as
+/// `exports/<format>/`); episodes whose outputs failed or are unusable are left out, each with
+/// its reason in the summary.
+fn run_export(env: &StageEnv<'_>, format: crate::export::ExportFormat) -> Result<()> {
+    let config = env.ctx.session.export.clone();
+    let options = crate::export::ExportOptions {
+        fps: config.as_ref().and_then(|x| x.fps),
+        views: config.and_then(|x| x.views),
+        episodes: None,
+    };
+    let report = crate::export::export(
+        &env.ctx.toml,
+        format,
+        &options,
+        &env.out.join(PUBLISHED_DIR),
+    )?;
+    write_summary(env.out, &report)
 }
 
 fn run_sync(env: &StageEnv<'_>, episode: &str) -> Result<()> {
