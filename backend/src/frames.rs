@@ -250,6 +250,16 @@ impl FrameSource {
         self.for_each_decoded(&all, |i| self.load_color(i), |c| Ok(c.clone()), f)
     }
 
+    /// [`FrameSource::for_each_gray_at`] in colour: only the frames at `indices` (strictly
+    /// increasing) are decoded.
+    pub fn for_each_color_at(
+        &self,
+        indices: &[usize],
+        f: impl FnMut(usize, ColorImage) -> Result<()>,
+    ) -> Result<()> {
+        self.for_each_decoded(indices, |i| self.load_color(i), |c| Ok(c.clone()), f)
+    }
+
     /// Check that `indices` name frames of this stream in strictly increasing order.
     pub fn check_indices(&self, indices: &[usize]) -> Result<()> {
         check_increasing_below(&self.lens_dir, indices, self.frames.len())

@@ -175,23 +175,24 @@ fn a_killed_run_resumes_to_byte_identical_results() {
     );
 }
 
-#[test]
-fn an_unmappable_map_episode_makes_every_episode_unusable_and_says_why() {
-    let tmp = tempfile::tempdir().unwrap();
-    // The mapping wrist's rear lens is covered for the whole map episode.
-    let cover = Cover::parse("0:left:rear:0:10").unwrap();
-    let mut o = SessionOptions::new(tmp.path().join("s"));
+/// A two-episode session (160 px, 10 Hz, 3 s) whose mapping wrist's rear lens is covered for
+/// the whole map episode: nothing can be mapped.
+fn unmappable_session(dir: &Path) -> PathBuf {
+    let mut o = SessionOptions::new(dir.join("s"));
     o.seed = 9;
     o.resolution = 160;
     o.rate_hz = 10.0;
     o.episodes = 2;
     o.duration_s = 3.0;
     o.head = false;
-    o.covers = vec![Cover {
-        duration_s: 3.0,
-        ..cover
-    }];
-    let toml = write_session(&o).unwrap().session_toml;
+    o.covers = vec![Cover::parse("0:left:rear:0:3").unwrap()];
+    write_session(&o).unwrap().session_toml
+}
+
+#[test]
+fn an_unmappable_map_episode_makes_every_episode_unusable_and_says_why() {
+    let tmp = tempfile::tempdir().unwrap();
+    let toml = unmappable_session(tmp.path());
     let out = Command::new(KIWI)
         .args(["run", "--json", "--session"])
         .arg(&toml)
@@ -226,16 +227,7 @@ fn an_unmappable_map_episode_makes_every_episode_unusable_and_says_why() {
 fn the_export_stage_follows_every_episode_and_names_the_ones_it_leaves_out() {
     let tmp = tempfile::tempdir().unwrap();
     // Cheap and fast: the map episode cannot be mapped, so every episode is unusable.
-    let cover = Cover::parse("0:left:rear:0:3").unwrap();
-    let mut o = SessionOptions::new(tmp.path().join("s"));
-    o.seed = 9;
-    o.resolution = 160;
-    o.rate_hz = 10.0;
-    o.episodes = 2;
-    o.duration_s = 3.0;
-    o.head = false;
-    o.covers = vec![cover];
-    let toml = write_session(&o).unwrap().session_toml;
+    let toml = unmappable_session(tmp.path());
     let mut text = std::fs::read_to_string(&toml).unwrap();
     text.push_str("\n[export]\nformats = [\"lerobot\", \"sidecar\"]\n");
     std::fs::write(&toml, text).unwrap();

@@ -184,13 +184,7 @@ pub fn write(exp: &SessionExport, options: &ExportOptions, dir: &Path) -> Result
             rows.timestamp.push(rate.time(k) as f32);
             rows.t_session.push(t);
             for (w, wrist) in ep.wrists.iter().enumerate() {
-                let s = wrist.sample(t).ok_or_else(|| {
-                    super::export_err(format!(
-                        "episode {}: the {} trajectory has no pose at session time {t:.6}",
-                        ep.name,
-                        wrist.side.camera_name()
-                    ))
-                })?;
+                let s = wrist.sample_row(&ep.name, t)?;
                 let state = wrist_state(&s, wrist.tool, &mut prev_q[w], &mut last_opening[w]);
                 rows.state.extend(state.iter().map(|&v| v as f32));
                 rows.support.push(support_code(s.support));

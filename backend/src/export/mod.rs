@@ -338,6 +338,17 @@ impl WristTrajectory {
         Some((self.rows.first()?.t_session?, self.rows.last()?.t_session?))
     }
 
+    /// [`Self::sample`] for a row of `episode`'s output grid: a time without a pose is an error
+    /// naming the episode, the wrist and the time.
+    pub fn sample_row(&self, episode: &str, t: f64) -> Result<WristSample> {
+        self.sample(t).ok_or_else(|| {
+            export_err(format!(
+                "episode {episode}: the {} trajectory has no pose at session time {t:.6}",
+                self.side.camera_name()
+            ))
+        })
+    }
+
     /// The wrist's state at session time `t` (inside [`Self::span`]).
     pub fn sample(&self, t: f64) -> Option<WristSample> {
         let k = self

@@ -196,13 +196,7 @@ pub fn write(exp: &SessionExport, options: &ExportOptions, dir: &Path) -> Result
             let mut last_opening = None;
             let mut poses = Vec::with_capacity(times.len());
             for &t in &times {
-                let s = wrist.sample(t).ok_or_else(|| {
-                    super::export_err(format!(
-                        "episode {}: the {} trajectory has no pose at session time {t:.6}",
-                        ep.name,
-                        wrist.side.camera_name()
-                    ))
-                })?;
+                let s = wrist.sample_row(&ep.name, t)?;
                 let p = s.scene_from_tip.translation.vector;
                 let r = so3_log(&s.scene_from_tip.rotation);
                 let pose = [p.x, p.y, p.z, r.x, r.y, r.z].map(|v| v as f32);
@@ -230,50 +224,30 @@ pub fn write(exp: &SessionExport, options: &ExportOptions, dir: &Path) -> Result
             let (picks, worst) = stream.nearest_frames(&times);
             report.max_frame_offset_s = report.max_frame_offset_s.max(worst);
             let name = format!("data/camera{i}_rgb");
-            let mut next = 0usize;
-            let last = picks.last().copied();
-            let stop = "export: all frames written";
-            let result = stream.source.for_each_color(|fi, frame| {
-                match image_shapes[i] {
-                    Some(shape) if shape != (frame.width, frame.height) => {
-                        return Err(super::export_err(format!(
-                            "view {}: frames of {}x{} px after frames of {}x{} px; export \
-                             episodes of one resolution together",
-                            stream.view.key(),
-                            frame.width,
-                            frame.height,
-                            shape.0,
-                            shape.1
-                        )));
+            let view = stream.view.key();
+            super::video::for_each_pick(
+                &stream.source,
+                &picks,
+                |m| super::export_err(format!("episode {}: view {view}: {m}", ep.name)),
+                |k, frame| {
+                    match image_shapes[i] {
+                        Some(shape) if shape != (frame.width, frame.height) => {
+                            return Err(super::export_err(format!(
+                                "view {view}: frames of {}x{} px after frames of {}x{} px; \
+                                 export episodes of one resolution together",
+                                frame.width, frame.height, shape.0, shape.1
+                            )));
+                        }
+                        _ => image_shapes[i] = Some((frame.width, frame.height)),
                     }
-                    _ => image_shapes[i] = Some((frame.width, frame.height)),
-                }
-                let rgb: Vec<u8> = frame
-                    .bgr
-                    .chunks_exact(3)
-                    .flat_map(|p| [p[2], p[1], p[0]])
-                    .collect();
-                while next < picks.len() && picks[next] == fi {
-                    store.chunk(&name, row + next, 4, &rgb)?;
-                    next += 1;
-                }
-                if Some(fi) >= last {
-                    return Err(BackendError::Export(stop.into()));
-                }
-                Ok(())
-            });
-            match result {
-                Err(BackendError::Export(m)) if m == stop => {}
-                other => other?,
-            }
-            if next != picks.len() {
-                return Err(super::export_err(format!(
-                    "episode {}: view {} ended after {next} of {} frames",
-                    ep.name,
-                    stream.view.key(),
-                    picks.len()
-                )));
-            }
+                    let rgb: Vec<u8> = frame
+                        .bgr
+                        .chunks_exact(3)
+                        .flat_map(|p| [p[2], p[1], p[0]])
+                        .collect();
+                    store.chunk(&name, row + k, 4, &rgb)
+                },
+            )?;
         }
         row += times.len();
         timestamps.extend_from_slice(&times);

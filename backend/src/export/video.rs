@@ -136,38 +136,47 @@ pub fn encode_frames(
     rate: Rate,
     path: &Path,
 ) -> Result<(usize, usize)> {
-    if picks.windows(2).any(|w| w[1] < w[0]) {
-        return Err(video_err(path, "frames must be chosen in order"));
-    }
     let (width, height) = source.resolution()?;
     let (width, height) = (width as usize, height as usize);
     let mut encoder = Encoder::start(path, width, height, rate)?;
-    let mut next = 0usize;
-    let last = picks.last().copied();
-    let stop = "export: all frames written";
-    let result = source.for_each_color(|i, frame| {
-        while next < picks.len() && picks[next] == i {
-            encoder.push(path, &frame)?;
-            next += 1;
-        }
-        if Some(i) >= last {
-            return Err(BackendError::Export(stop.into()));
-        }
-        Ok(())
-    });
-    match result {
-        Err(BackendError::Export(m)) if m == stop => {}
-        other => other?,
-    }
-    if next != picks.len() {
-        return Err(video_err(
-            path,
-            &format!(
-                "the lens stream ended after {next} of {} frames",
-                picks.len()
-            ),
-        ));
-    }
+    for_each_pick(
+        source,
+        picks,
+        |m| video_err(path, &m),
+        |_, frame| encoder.push(path, frame),
+    )?;
     encoder.finish(path)?;
     Ok((width, height))
+}
+
+/// Call `f(k, frame)` for every pick `k` of `picks` (frame indices of `source`, non-decreasing),
+/// in order, decoding only the picked frames (a frame picked for several rows is decoded once).
+/// `err` makes this function's own errors (picks out of order, a stream shorter than its picks)
+/// name what is being exported.
+pub fn for_each_pick(
+    source: &FrameSource,
+    picks: &[usize],
+    err: impl Fn(String) -> BackendError,
+    mut f: impl FnMut(usize, &ColorImage) -> Result<()>,
+) -> Result<()> {
+    if picks.windows(2).any(|w| w[1] < w[0]) {
+        return Err(err("frames must be chosen in time order".into()));
+    }
+    let mut unique = picks.to_vec();
+    unique.dedup();
+    let mut next = 0usize;
+    source.for_each_color_at(&unique, |i, frame| {
+        while next < picks.len() && picks[next] == i {
+            f(next, &frame)?;
+            next += 1;
+        }
+        Ok(())
+    })?;
+    if next != picks.len() {
+        return Err(err(format!(
+            "the lens stream ended after {next} of {} frames",
+            picks.len()
+        )));
+    }
+    Ok(())
 }

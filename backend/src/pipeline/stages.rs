@@ -181,6 +181,22 @@ fn calibration_input(ctx: &SessionContext, wrist: &WristContext) -> Result<Input
     )
 }
 
+/// Every camera's calibration: both wrists' units and the head camera's, when there is one.
+fn calibration_inputs(ctx: &SessionContext) -> Result<Vec<InputDigest>> {
+    let mut v = Vec::new();
+    for w in ctx.wrists.values() {
+        v.push(calibration_input(ctx, w)?);
+    }
+    if let Some(h) = &ctx.session.head {
+        v.push(file_input(
+            ctx,
+            "calibration head".into(),
+            &ctx.root.join(&h.calibration).join("calibration.json"),
+        )?);
+    }
+    Ok(v)
+}
+
 fn wrist(ctx: &SessionContext, side: Side) -> Result<&WristContext> {
     ctx.wrists.get(&side).ok_or_else(|| {
         input(
@@ -210,16 +226,7 @@ pub fn inputs(ctx: &SessionContext, kind: &StageKind) -> Result<Vec<InputDigest>
                     &layout.meta_json(camera),
                 )?);
             }
-            for w in ctx.wrists.values() {
-                v.push(calibration_input(ctx, w)?);
-            }
-            if let Some(h) = &ctx.session.head {
-                v.push(file_input(
-                    ctx,
-                    "calibration head".into(),
-                    &ctx.root.join(&h.calibration).join("calibration.json"),
-                )?);
-            }
+            v.extend(calibration_inputs(ctx)?);
             v
         }
         StageKind::Map { map } => {
@@ -335,16 +342,7 @@ fn export_inputs(ctx: &SessionContext) -> Result<Vec<InputDigest>> {
         },
         file_input(ctx, "session".into(), &ctx.toml)?,
     ];
-    for w in ctx.wrists.values() {
-        v.push(calibration_input(ctx, w)?);
-    }
-    if let Some(h) = &ctx.session.head {
-        v.push(file_input(
-            ctx,
-            "calibration head".into(),
-            &ctx.root.join(&h.calibration).join("calibration.json"),
-        )?);
-    }
+    v.extend(calibration_inputs(ctx)?);
     let named = ctx.session.export.as_ref().and_then(|x| x.views.clone());
     for episode in ctx.episode_names() {
         let layout = ctx.episode(&episode);
