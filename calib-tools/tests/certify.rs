@@ -44,7 +44,10 @@ fn sim(dir: &Path, name: &str, edit: impl FnOnce(&mut UnitCaptureOptions)) -> Pa
     edit(&mut o);
     let started = std::time::Instant::now();
     write_unit_captures(&o).unwrap();
-    println!("{name}: simulated in {:.1} s", started.elapsed().as_secs_f64());
+    println!(
+        "{name}: simulated in {:.1} s",
+        started.elapsed().as_secs_f64()
+    );
     out
 }
 
