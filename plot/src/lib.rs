@@ -420,7 +420,7 @@ impl Chart {
             add(a.from.0, a.from.1);
             add(a.to.0, a.to.1);
         }
-        if !(lo <= hi) {
+        if lo > hi {
             return if axis.log { (0.1, 10.0) } else { (0.0, 1.0) };
         }
         if axis.log {
