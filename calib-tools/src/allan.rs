@@ -1270,9 +1270,9 @@ pub fn summary_json(report: &NoiseReport) -> serde_json::Value {
 }
 
 /// Log-log plot of every axis's ADEV with its confidence band and the fitted terms: gyro axes
-/// in one panel, accelerometer axes in another, stacked into one PNG.
+/// in one panel, accelerometer axes in another, stacked into one SVG.
 pub fn plot(report: &NoiseReport, path: &Path) -> Result<()> {
-    use crate::plot::{Band, Corner, Figure, Series, Style};
+    use kiwi_plot::{Axis, Band, Chart, Corner, Mark, Series};
     const AXIS_COLORS: [[u8; 3]; 3] = [[214, 39, 40], [44, 160, 44], [31, 119, 180]];
     const TERM_COLORS: [[u8; 3]; 5] = [
         [148, 103, 189],
@@ -1283,21 +1283,19 @@ pub fn plot(report: &NoiseReport, path: &Path) -> Result<()> {
     ];
     let mut panels = Vec::new();
     for (sensor, range, unit) in [
-        ("GYROSCOPE", 0..3, "ADEV (RAD/S)"),
-        ("ACCELEROMETER", 3..6, "ADEV (M/S²)"),
+        ("Gyroscope", 0..3, "ADEV (rad/s)"),
+        ("Accelerometer", 3..6, "ADEV (m/s²)"),
     ] {
-        let mut fig = Figure::new(
+        let mut fig = Chart::new(
             1000,
             620,
             &format!(
-                "{sensor} ALLAN DEVIATION ({} H)",
+                "{sensor} Allan deviation ({} h)",
                 fmt1(report.duration_s / 3600.0)
             ),
-            "AVERAGING TIME TAU (S)",
-            unit,
+            Axis::log("averaging time τ (s)"),
+            Axis::log(unit),
         );
-        fig.x_log = true;
-        fig.y_log = true;
         fig.legend = Corner::BottomLeft;
         // The data's range (a decade below its floor): fitted terms leave it, the data does not.
         let (lo, hi) = range.clone().fold((f64::INFINITY, 0.0f64), |(lo, hi), a| {
@@ -1311,12 +1309,13 @@ pub fn plot(report: &NoiseReport, path: &Path) -> Result<()> {
             (lo, ax.adev_high.iter().copied().fold(hi, f64::max))
         });
         if lo.is_finite() && hi > lo {
-            fig.y_range = Some((lo / 10.0, hi));
+            fig.y.range = Some((lo / 10.0, hi));
         }
         for (k, a) in range.clone().enumerate() {
             let ax = &report.axes[a];
             let color = AXIS_COLORS[k];
             fig.bands.push(Band {
+                name: String::new(),
                 color,
                 points: ax
                     .curve
@@ -1334,7 +1333,7 @@ pub fn plot(report: &NoiseReport, path: &Path) -> Result<()> {
                     sig(ax.fit.random_walk.value)
                 ),
                 color,
-                style: Style::Line(2),
+                mark: Mark::Line(2),
                 points: ax
                     .curve
                     .taus
@@ -1353,7 +1352,7 @@ pub fn plot(report: &NoiseReport, path: &Path) -> Result<()> {
                 fig.series.push(Series {
                     name: format!("{} {}", first.axis, t.name()),
                     color: TERM_COLORS[i],
-                    style: Style::Dashed(1),
+                    mark: Mark::Dashed(1),
                     points: taus
                         .iter()
                         .map(|&tau| (tau, first.fit.term_adev(t, tau)))
@@ -1364,20 +1363,16 @@ pub fn plot(report: &NoiseReport, path: &Path) -> Result<()> {
         fig.series.push(Series {
             name: format!("{} model", first.axis),
             color: [0, 0, 0],
-            style: Style::Dashed(2),
+            mark: Mark::Dashed(2),
             points: taus
                 .iter()
                 .map(|&tau| (tau, first.fit.model_adev(tau)))
                 .collect(),
         });
-        panels.push(fig.render());
+        panels.push(fig);
     }
-    let (w, h) = (panels[0].width(), panels[0].height());
-    let mut out = image::RgbImage::new(w, h * panels.len() as u32);
-    for (i, p) in panels.iter().enumerate() {
-        image::imageops::replace(&mut out, p, 0, i64::from(h) * i as i64);
-    }
-    crate::plot::save_png(out, path)
+    Chart::save_stack_svg(&panels, path)?;
+    Ok(())
 }
 
 fn fmt1(v: f64) -> String {
@@ -1528,7 +1523,7 @@ pub struct WrittenNoise {
 }
 
 /// Write the result folder: `imu_noise.json`, Kalibr `imu.yaml`, the plot (`plot`, default
-/// `OUT/allan.png`), `report.md`, and, given the unit's `calibration.json`, a copy of it in
+/// `OUT/allan.svg`), `report.md`, and, given the unit's `calibration.json`, a copy of it in
 /// `OUT/` with this noise model (the input is never modified).
 pub fn write_outputs(
     report: &NoiseReport,
@@ -1554,7 +1549,7 @@ pub fn write_outputs(
     kiwi_core::io::write_atomic(&result, json.as_bytes())?;
     let kalibr_imu = out.join("imu.yaml");
     kiwi_core::io::write_atomic(&kalibr_imu, kiwi_core::kalibr::imu_yaml(&noise).as_bytes())?;
-    let plot_file = plot_path.map_or_else(|| out.join("allan.png"), Path::to_path_buf);
+    let plot_file = plot_path.map_or_else(|| out.join("allan.svg"), Path::to_path_buf);
     plot(report, &plot_file)?;
     let report_path = out.join("report.md");
     let plot_name = pathdiff(&plot_file, out);

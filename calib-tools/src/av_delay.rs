@@ -746,40 +746,23 @@ pub fn summarize(results: Vec<CaptureResult>) -> AvDelayReport {
     }
 }
 
-/// A small SVG scatter plot of residuals (ms) against time (s).
-pub fn residual_svg(title: &str, points: &[(f64, f64)]) -> String {
-    let (w, h, m) = (640.0, 240.0, 40.0);
-    let (x0, x1) = points
-        .iter()
-        .fold((f64::INFINITY, f64::NEG_INFINITY), |a, p| {
-            (a.0.min(p.0), a.1.max(p.0))
-        });
-    let ymax = points
-        .iter()
-        .map(|p| (p.1 * 1e3).abs())
-        .fold(1e-3, f64::max);
-    let sx = |x: f64| m + (x - x0) / (x1 - x0).max(1e-9) * (w - 2.0 * m);
-    let sy = |y: f64| h / 2.0 - y * 1e3 / ymax * (h / 2.0 - m);
-    let mut svg = format!(
-        "<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"{w}\" height=\"{h}\" font-family=\"sans-serif\" font-size=\"12\"><rect width=\"100%\" height=\"100%\" fill=\"white\"/><text x=\"{m}\" y=\"20\">{title} (residual ms, ±{ymax:.2} full scale, vs s)</text><line x1=\"{m}\" y1=\"{}\" x2=\"{}\" y2=\"{}\" stroke=\"#888\"/>",
-        h / 2.0,
-        w - m,
-        h / 2.0
+/// A scatter plot of a clock fit's residuals (ms) against time (s).
+pub fn residual_chart(title: &str, points: &[(f64, f64)]) -> kiwi_plot::Chart {
+    use kiwi_plot::{Axis, Chart, Mark, Series};
+    let mut c = Chart::new(
+        640,
+        280,
+        title,
+        Axis::new("time (s)"),
+        Axis::new("residual (ms)"),
     );
-    for p in points {
-        svg.push_str(&format!(
-            "<circle cx=\"{:.1}\" cy=\"{:.1}\" r=\"1.5\" fill=\"#36c\"/>",
-            sx(p.0),
-            sy(p.1)
-        ));
-    }
-    svg.push_str(&format!(
-        "<text x=\"{m}\" y=\"{}\">{x0:.1} s</text><text x=\"{}\" y=\"{}\">{x1:.1} s</text></svg>",
-        h - 8.0,
-        w - m - 40.0,
-        h - 8.0
+    c.series.push(Series::new(
+        "",
+        kiwi_plot::PALETTE[0],
+        Mark::Points(2),
+        points.iter().map(|&(t, r)| (t, r * 1e3)).collect(),
     ));
-    svg
+    c
 }
 
 /// Write the report folder: `av_delay.json`, `report.md` and residual plots (SVG), plus, for
@@ -818,10 +801,7 @@ pub fn write_outputs(
         ));
         for (kind, points) in [("video", &c.video_residuals), ("audio", &c.audio_residuals)] {
             let p = out.join("plots").join(format!("{}_{kind}.svg", c.name));
-            kiwi_core::io::write_atomic(
-                &p,
-                residual_svg(&format!("{} {kind} clock fit", c.name), points).as_bytes(),
-            )?;
+            residual_chart(&format!("{} {kind} clock fit", c.name), points).save_svg(&p)?;
         }
     }
     if !report.offsets.is_empty() {

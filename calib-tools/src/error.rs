@@ -14,6 +14,9 @@ pub enum CalibError {
         /// What is wrong and the fix.
         message: String,
     },
+    /// A chart could not be drawn or written.
+    #[error(transparent)]
+    Plot(#[from] kiwi_plot::PlotError),
     /// A servo-bench failure (protocol, device, bench files).
     #[error(transparent)]
     Bench(#[from] crate::bench::BenchError),

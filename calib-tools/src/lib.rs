@@ -17,7 +17,6 @@ pub mod hardware;
 pub mod import;
 pub mod intrinsics;
 pub mod lens_cli;
-pub mod plot;
 pub mod qr_clock;
 pub mod target;
 

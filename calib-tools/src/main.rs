@@ -68,10 +68,10 @@ enum Command {
         /// The static log (imu.csv: t,gx,gy,gz,ax,ay,az in s, rad/s, m/s²); hours at up to 1 kHz.
         #[arg(long)]
         imu: PathBuf,
-        /// Result folder (imu_noise.json, imu.yaml, allan.png, report.md).
+        /// Result folder (imu_noise.json, imu.yaml, allan.svg, report.md).
         #[arg(long)]
         out: PathBuf,
-        /// Where to write the plot (default OUT/allan.png).
+        /// Where to write the plot (default OUT/allan.svg).
         #[arg(long)]
         plot: Option<PathBuf>,
         /// The unit's calibration.json: a copy with this noise model is written to OUT.

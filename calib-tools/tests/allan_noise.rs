@@ -301,10 +301,14 @@ fn outputs_hold_the_result_the_kalibr_file_and_a_plot() {
     let yaml = std::fs::read_to_string(&written.kalibr_imu).unwrap();
     let imu = kiwi_core::kalibr::imu_from_yaml(&yaml, &written.kalibr_imu).unwrap();
     assert!((imu.gyroscope_noise_density / 1.5e-3 - 1.0).abs() < 0.05);
-    let png = image::open(&written.plot).unwrap();
-    assert!(png.width() >= 800 && png.height() >= 1000);
+    let svg = std::fs::read_to_string(&written.plot).unwrap();
+    assert!(
+        svg.starts_with("<svg") && svg.contains("height=\"1240\""),
+        "{svg:.300}"
+    );
+    assert!(svg.contains("Gyroscope Allan deviation") && svg.contains("Accelerometer"));
     let md = std::fs::read_to_string(&written.report).unwrap();
-    assert!(md.contains("allan.png") && md.contains("0.664"));
+    assert!(md.contains("allan.svg") && md.contains("0.664"));
     let json = kiwi_calib::allan::summary_json(&report);
     for axis in ["gx", "gy", "gz", "ax", "ay", "az"] {
         let a = &json["axes"][axis];

@@ -108,7 +108,7 @@ pub struct CompareArgs {
     /// Opening CSV from `kiwi gripper`.
     #[arg(long)]
     pub vision: PathBuf,
-    /// Output folder (compare.json, compare.png, aligned.csv).
+    /// Output folder (compare.json, compare.svg, aligned.csv).
     #[arg(long)]
     pub out: PathBuf,
     /// The tool: chopstick, parallel_jaw, a definition (.toml) or a JSON artifact with one

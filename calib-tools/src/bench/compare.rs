@@ -13,7 +13,7 @@ use kiwi_core::tool::ToolDefinition;
 
 use super::error::BenchError;
 use super::protocol::COUNTS_PER_REV;
-use crate::plot::{Figure, Series, Style};
+use kiwi_plot::{Axis, Chart, Mark, Series};
 
 /// Grid step of the coarse cross-correlation (s); the refinement goes below it.
 const GRID_S: f64 = 0.001;
@@ -682,30 +682,30 @@ pub fn plot_cycle(cmp: &Comparison, aligned: &Aligned, path: &Path) -> Result<()
         OpeningUnit::Deg => "deg",
         OpeningUnit::Px => "px",
     };
-    let mut fig = Figure::new(
+    let mut fig = Chart::new(
         900,
         500,
         &format!(
             "vision vs encoder: rmse {:.3} {unit}, n {}",
             cmp.rmse, cmp.n
         ),
-        "time in cycle (s)",
-        &format!("opening ({unit})"),
+        Axis::new("time in cycle (s)"),
+        Axis::new(&format!("opening ({unit})")),
     );
     // As in the paper's figure: vision in blue, the encoder in orange on top.
     fig.series.push(Series {
         name: "vision".into(),
         color: [31, 95, 191],
-        style: Style::Markers(3),
+        mark: Mark::Points(2),
         points: window(&aligned.vision),
     });
     fig.series.push(Series {
         name: "encoder".into(),
         color: [235, 125, 20],
-        style: Style::Line(2),
+        mark: Mark::Line(2),
         points: window(&aligned.encoder),
     });
-    fig.save_png(path)
+    fig.save_svg(path)
         .map_err(|e| file_err(path, e.to_string()))
 }
 
@@ -714,13 +714,13 @@ pub fn plot_cycle(cmp: &Comparison, aligned: &Aligned, path: &Path) -> Result<()
 pub struct CompareOutputs {
     /// `compare.json`.
     pub json: PathBuf,
-    /// `compare.png`.
+    /// `compare.svg`.
     pub plot: PathBuf,
     /// `aligned.csv`.
     pub aligned: PathBuf,
 }
 
-/// Read both files, compare and write `compare.json`, `compare.png` and `aligned.csv`
+/// Read both files, compare and write `compare.json`, `compare.svg` and `aligned.csv`
 /// (`t_video,vision,encoder,error`) into `out_dir`.
 pub fn run(
     encoder_path: &Path,
@@ -750,7 +750,7 @@ pub fn run(
         .map_err(|e| file_err(out_dir, format!("cannot create the output folder: {e}")))?;
     let outputs = CompareOutputs {
         json: out_dir.join("compare.json"),
-        plot: out_dir.join("compare.png"),
+        plot: out_dir.join("compare.svg"),
         aligned: out_dir.join("aligned.csv"),
     };
     let json =

@@ -11,7 +11,7 @@ use kiwi_core::io::{sha256_file, utc_now_rfc3339, write_atomic};
 
 use super::{CamImuOptions, CamImuResult, calibrate};
 use crate::error::{CalibError, Result};
-use crate::plot::{Figure, Series, Style};
+use kiwi_plot::{Axis, Chart, Mark, Series};
 
 /// Colours of the lenses in plots.
 const LENS_COLORS: [[u8; 3]; 4] = [
@@ -210,12 +210,12 @@ pub fn write_outputs(result: &CamImuResult, out: &Path) -> Result<WrittenFiles> 
 fn write_plots(result: &CamImuResult, out: &Path) -> Result<Vec<PathBuf>> {
     let mut files = Vec::new();
     let p = &result.plots;
-    let mut fig = Figure::new(
+    let mut fig = Chart::new(
         1200,
         500,
         "Corner reprojection error over time",
-        "time (s, camera clock)",
-        "|residual| (px)",
+        Axis::new("time (s, camera clock)"),
+        Axis::new("|residual| (px)"),
     );
     for (l, lens) in result.lenses.iter().enumerate() {
         let pts = p.corner_residuals.get(l).cloned().unwrap_or_default();
@@ -223,61 +223,65 @@ fn write_plots(result: &CamImuResult, out: &Path) -> Result<Vec<PathBuf>> {
         fig.series.push(Series {
             name: lens.name.clone(),
             color: LENS_COLORS[l % LENS_COLORS.len()],
-            style: Style::Markers(2),
+            mark: Mark::Points(1),
             points: pts.into_iter().step_by(stride).collect(),
         });
     }
-    let path = out.join("reprojection_time.png");
-    fig.save_png(&path)?;
+    let path = out.join("reprojection_time.svg");
+    fig.save_svg(&path)?;
     files.push(path);
 
-    let mut fig = Figure::new(700, 700, "Corner residuals", "du (px)", "dv (px)");
     let lim = 4.0 * result.pixel_sigma.max(0.1);
-    fig.x_range = Some((-lim, lim));
-    fig.y_range = Some((-lim, lim));
+    let mut fig = Chart::new(
+        700,
+        700,
+        "Corner residuals",
+        Axis::new("du (px)").with_range(-lim, lim),
+        Axis::new("dv (px)").with_range(-lim, lim),
+    );
     for (l, lens) in result.lenses.iter().enumerate() {
         let pts = p.corner_vectors.get(l).cloned().unwrap_or_default();
         let stride = (pts.len() / 20000).max(1);
         fig.series.push(Series {
             name: lens.name.clone(),
             color: LENS_COLORS[l % LENS_COLORS.len()],
-            style: Style::Markers(2),
+            mark: Mark::Points(1),
             points: pts.into_iter().step_by(stride).collect(),
         });
     }
-    let path = out.join("reprojection_scatter.png");
-    fig.save_png(&path)?;
+    let path = out.join("reprojection_scatter.svg");
+    fig.save_svg(&path)?;
     files.push(path);
 
-    let mut fig = Figure::new(
+    let mut fig = Chart::new(
         1200,
         500,
         "IMU residuals (after the fit)",
-        "time (s, IMU clock)",
-        "|gyro| rad/s x100, |accel| m/s2",
+        Axis::new("time (s, IMU clock)"),
+        Axis::new("|gyro| (rad/s ×100), |accel| (m/s²)"),
     );
     fig.series.push(Series {
         name: "gyro x100".into(),
         color: [31, 119, 180],
-        style: Style::Line(1),
+        mark: Mark::Line(1),
         points: p.imu_residuals.iter().map(|r| (r.0, 100.0 * r.1)).collect(),
     });
     fig.series.push(Series {
         name: "accel".into(),
         color: [255, 127, 14],
-        style: Style::Line(1),
+        mark: Mark::Line(1),
         points: p.imu_residuals.iter().map(|r| (r.0, r.2)).collect(),
     });
-    let path = out.join("imu_residuals.png");
-    fig.save_png(&path)?;
+    let path = out.join("imu_residuals.svg");
+    fig.save_svg(&path)?;
     files.push(path);
 
-    let mut fig = Figure::new(
+    let mut fig = Chart::new(
         1200,
         500,
         "Angular rate: camera (from board poses) vs gyro, aligned",
-        "time (s, camera clock)",
-        "|rate| (rad/s)",
+        Axis::new("time (s, camera clock)"),
+        Axis::new("|rate| (rad/s)"),
     );
     if let Some(rates) = p.rates.first() {
         let t0 = rates.first().map_or(0.0, |r| r.0);
@@ -285,18 +289,18 @@ fn write_plots(result: &CamImuResult, out: &Path) -> Result<Vec<PathBuf>> {
         fig.series.push(Series {
             name: "gyro".into(),
             color: [120, 120, 120],
-            style: Style::Line(2),
+            mark: Mark::Line(2),
             points: window.iter().map(|r| (r.0, r.2)).collect(),
         });
         fig.series.push(Series {
             name: format!("camera ({})", result.lenses[0].name),
             color: LENS_COLORS[0],
-            style: Style::Markers(3),
+            mark: Mark::Points(2),
             points: window.iter().map(|r| (r.0, r.1)).collect(),
         });
     }
-    let path = out.join("rates.png");
-    fig.save_png(&path)?;
+    let path = out.join("rates.svg");
+    fig.save_svg(&path)?;
     files.push(path);
     Ok(files)
 }

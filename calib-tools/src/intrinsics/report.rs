@@ -1,21 +1,19 @@
 //! The outputs of `kiwi-calib intrinsics`: the lens part of the unit artifact, a JSON summary,
-//! the rejected corners, and report PNGs (coverage heat map, residual vectors, per-view RMS).
+//! the rejected corners, and report SVGs (coverage heat map, residual vectors, per-view RMS).
 
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
-
-use image::{Rgb, RgbImage};
 
 use kiwi_core::io::write_atomic;
 
 use super::IntrinsicsResult;
 use crate::error::{CalibError, Result};
-use crate::plot::{Arrow, Figure, Series, Style, fill_rect, text};
+use kiwi_plot::{Arrow, Axis, Chart, Mark, Rect, Rects, Series, bars};
 
 /// Heat-map bins per image side.
 const HEAT_BINS: u32 = 48;
-/// Heat-map cell size in the PNG (pixels).
-const HEAT_CELL: u32 = 12;
+/// Colour levels of the heat map (finer steps are not told apart by eye).
+const HEAT_LEVELS: u32 = 16;
 /// Residual arrows are drawn this many times longer than they are, in units of the image width
 /// per RMS, so a typical arrow is under 1 % of the image and the field stays readable.
 const ARROW_LENGTH_PER_RMS: f64 = 0.008;
@@ -86,9 +84,9 @@ pub fn write_outputs(
     }
     write_atomic(&rejected, csv.as_bytes())?;
     let plots = vec![
-        coverage_png(result, &out.join("coverage.png"))?,
-        residuals_png(result, &out.join("residuals.png"))?,
-        view_rms_png(result, &out.join("view_rms.png"))?,
+        coverage_svg(result, &out.join("coverage.svg"))?,
+        residuals_svg(result, &out.join("residuals.svg"))?,
+        view_rms_svg(result, &out.join("view_rms.svg"))?,
     ];
     Ok(WrittenFiles {
         lens,
@@ -96,11 +94,6 @@ pub fn write_outputs(
         rejected,
         plots,
     })
-}
-
-fn save_png(img: RgbImage, path: &Path) -> Result<PathBuf> {
-    crate::plot::save_png(img, path)?;
-    Ok(path.to_path_buf())
 }
 
 /// Colour map from white (no corners) through blue and green to red (most corners).
@@ -121,8 +114,9 @@ fn heat_colour(v: f64) -> [u8; 3] {
     [c(0), c(1), c(2)]
 }
 
-/// Where the used corners fell in the image, and the rejected ones (black dots).
-fn coverage_png(result: &IntrinsicsResult, path: &Path) -> Result<PathBuf> {
+/// Where the used corners fell in the image (heat map of corner counts), and the rejected
+/// ones (black dots); image y is drawn from the bottom so the picture is upright.
+fn coverage_svg(result: &IntrinsicsResult, path: &Path) -> Result<PathBuf> {
     let [w, h] = result.resolution;
     let (wf, hf) = (f64::from(w), f64::from(h));
     let mut bins = vec![0u32; (HEAT_BINS * HEAT_BINS) as usize];
@@ -132,57 +126,76 @@ fn coverage_png(result: &IntrinsicsResult, path: &Path) -> Result<PathBuf> {
         bins[(by * HEAT_BINS + bx) as usize] += 1;
     }
     let max = f64::from(bins.iter().copied().max().unwrap_or(1).max(1));
-    let top = 50;
-    let side = HEAT_BINS * HEAT_CELL;
-    let mut img = RgbImage::from_pixel(side + 40, side + top + 30, Rgb([255, 255, 255]));
-    for by in 0..HEAT_BINS {
-        for bx in 0..HEAT_BINS {
-            let v = f64::from(bins[(by * HEAT_BINS + bx) as usize]) / max;
-            let (x0, y0) = ((20 + bx * HEAT_CELL) as i32, (top + by * HEAT_CELL) as i32);
-            fill_rect(
-                &mut img,
-                x0,
-                y0,
-                x0 + HEAT_CELL as i32 - 1,
-                y0 + HEAT_CELL as i32 - 1,
-                heat_colour(v),
-            );
-        }
-    }
-    for r in &result.rejected {
-        let x = 20 + (r.pixel[0] / wf * f64::from(side)) as i32;
-        let y = top as i32 + (r.pixel[1] / hf * f64::from(side)) as i32;
-        fill_rect(&mut img, x - 1, y - 1, x + 1, y + 1, [0, 0, 0]);
-    }
-    text(
-        &mut img,
-        20,
-        12,
+    let mut fig = Chart::new(
+        800,
+        820,
         &format!(
-            "corner coverage: {} corners, {} views (black: rejected)",
+            "corner coverage: {} corners, {} views (colour: corners per cell, black: rejected)",
             result.n_corners, result.n_views
         ),
-        [0, 0, 0],
+        Axis::new("image x (px)").with_range(0.0, wf),
+        Axis::new("image y from the bottom (px)").with_range(0.0, hf),
     );
-    save_png(img, path)
+    fig.equal_aspect = true;
+    // One layer per colour level keeps the SVG small (cells of one level share a style).
+    let mut levels: Vec<Rects> = (0..=HEAT_LEVELS)
+        .map(|k| Rects {
+            name: String::new(),
+            color: heat_colour(f64::from(k) / f64::from(HEAT_LEVELS)),
+            rects: Vec::new(),
+        })
+        .collect();
+    let (cw, ch) = (wf / f64::from(HEAT_BINS), hf / f64::from(HEAT_BINS));
+    for by in 0..HEAT_BINS {
+        for bx in 0..HEAT_BINS {
+            let n = bins[(by * HEAT_BINS + bx) as usize];
+            if n == 0 {
+                continue;
+            }
+            let level = ((f64::from(n) / max * f64::from(HEAT_LEVELS)).round() as usize).max(1);
+            let (x0, y1) = (f64::from(bx) * cw, hf - f64::from(by) * ch);
+            levels[level.min(HEAT_LEVELS as usize)].rects.push(Rect {
+                x0,
+                x1: x0 + cw,
+                y0: y1 - ch,
+                y1,
+            });
+        }
+    }
+    fig.rects = levels;
+    fig.series.push(Series {
+        name: if result.rejected.is_empty() {
+            String::new()
+        } else {
+            "rejected".into()
+        },
+        color: [0, 0, 0],
+        mark: Mark::Points(2),
+        points: result
+            .rejected
+            .iter()
+            .map(|r| (r.pixel[0], hf - r.pixel[1]))
+            .collect(),
+    });
+    fig.save_svg(path)?;
+    Ok(path.to_path_buf())
 }
 
 /// Residual vectors at each corner, magnified.
-fn residuals_png(result: &IntrinsicsResult, path: &Path) -> Result<PathBuf> {
+fn residuals_svg(result: &IntrinsicsResult, path: &Path) -> Result<PathBuf> {
     let [w, h] = result.resolution;
     let scale = ARROW_LENGTH_PER_RMS * f64::from(w) / result.rms_px.max(1e-6);
-    let mut fig = Figure::new(
+    let mut fig = Chart::new(
         900,
         900,
         &format!(
-            "residuals x{scale:.0} (rms {:.3} px, {})",
+            "residuals ×{scale:.0} (rms {:.3} px, {})",
             result.rms_px, result.model
         ),
-        "image x (px)",
-        "image y from the bottom (px)",
+        Axis::new("image x (px)").with_range(0.0, f64::from(w)),
+        Axis::new("image y from the bottom (px)").with_range(0.0, f64::from(h)),
     );
-    fig.x_range = Some((0.0, f64::from(w)));
-    fig.y_range = Some((0.0, f64::from(h)));
+    fig.equal_aspect = true;
     let hf = f64::from(h);
     fig.arrows = result
         .residuals
@@ -195,36 +208,52 @@ fn residuals_png(result: &IntrinsicsResult, path: &Path) -> Result<PathBuf> {
             ),
         })
         .collect();
-    fig.save_png(path)?;
+    fig.save_svg(path)?;
     Ok(path.to_path_buf())
 }
 
-/// RMS of each view as a bar (rejected views at zero).
-fn view_rms_png(result: &IntrinsicsResult, path: &Path) -> Result<PathBuf> {
-    let mut fig = Figure::new(1000, 500, "per-view RMS", "view", "RMS per axis (px)");
+/// RMS of each view as a bar (rejected views marked red at zero).
+fn view_rms_svg(result: &IntrinsicsResult, path: &Path) -> Result<PathBuf> {
     let n = result.views.len();
-    let bar = (600 / n.max(1)).clamp(2, 20) as u32;
-    for (k, v) in result.views.iter().enumerate() {
-        let rms = if v.used && v.rms_px.is_finite() {
-            v.rms_px
-        } else {
-            0.0
-        };
-        fig.series.push(Series {
-            name: String::new(),
-            color: if v.used { [40, 90, 200] } else { [200, 40, 40] },
-            style: Style::Line(bar),
-            points: vec![(k as f64, 0.0), (k as f64, rms)],
-        });
-    }
-    let max = result
+    let used: Vec<f64> = result
         .views
         .iter()
-        .filter(|v| v.used)
-        .map(|v| v.rms_px)
+        .map(|v| {
+            if v.used && v.rms_px.is_finite() {
+                v.rms_px
+            } else {
+                f64::NAN
+            }
+        })
+        .collect();
+    let max = used
+        .iter()
+        .copied()
+        .filter(|v| v.is_finite())
         .fold(0.0, f64::max);
-    fig.x_range = Some((-1.0, n as f64));
-    fig.y_range = Some((0.0, (max * 1.2).max(1e-3)));
-    fig.save_png(path)?;
+    let mut fig = Chart::new(
+        1000,
+        500,
+        "per-view RMS",
+        Axis::new("view").with_range(-1.0, n as f64),
+        Axis::new("RMS per axis (px)").with_range(0.0, (max * 1.2).max(1e-3)),
+    );
+    fig.rects.push(bars("used", [40, 90, 200], &used));
+    let rejected: Vec<(f64, f64)> = result
+        .views
+        .iter()
+        .enumerate()
+        .filter(|(_, v)| !(v.used && v.rms_px.is_finite()))
+        .map(|(k, _)| (k as f64, 0.0))
+        .collect();
+    if !rejected.is_empty() {
+        fig.series.push(Series {
+            name: "rejected".into(),
+            color: [200, 40, 40],
+            mark: Mark::Points(3),
+            points: rejected,
+        });
+    }
+    fig.save_svg(path)?;
     Ok(path.to_path_buf())
 }
