@@ -14,9 +14,10 @@ pub enum CalibError {
         /// What is wrong and the fix.
         message: String,
     },
-    /// A chart could not be drawn or written.
+    /// A chart could not be drawn or written (boxed: the variant would otherwise make every
+    /// result of this crate larger).
     #[error(transparent)]
-    Plot(#[from] kiwi_plot::PlotError),
+    Plot(Box<kiwi_plot::PlotError>),
     /// A servo-bench failure (protocol, device, bench files).
     #[error(transparent)]
     Bench(#[from] crate::bench::BenchError),
@@ -27,3 +28,9 @@ pub enum CalibError {
 
 /// Shorthand for results in this crate.
 pub type Result<T> = std::result::Result<T, CalibError>;
+
+impl From<kiwi_plot::PlotError> for CalibError {
+    fn from(e: kiwi_plot::PlotError) -> Self {
+        Self::Plot(Box::new(e))
+    }
+}

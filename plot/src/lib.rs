@@ -698,13 +698,35 @@ pub fn bars(name: &str, color: Rgb, values: &[f64]) -> Rects {
 /// Height of a timeline band inside its row (the rest separates the rows).
 const TIMELINE_BAND: f64 = 0.7;
 
+/// One interval of a timeline row spent in a state.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Span {
+    /// Row index.
+    pub row: usize,
+    /// Start (x units).
+    pub start: f64,
+    /// End (x units).
+    pub end: f64,
+}
+
+/// A state of a timeline (one legend entry) and the intervals spent in it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TimelineState {
+    /// Legend name.
+    pub name: String,
+    /// Band colour.
+    pub color: Rgb,
+    /// Intervals in this state.
+    pub spans: Vec<Span>,
+}
+
 /// A timeline: one row per stream, time on x, coloured bands for the states a stream was in.
 #[derive(Debug, Clone, Default)]
 pub struct Timeline {
     /// Row names, top to bottom.
     pub rows: Vec<String>,
-    /// States: name, colour, and `(row, start, end)` intervals.
-    pub states: Vec<(String, Rgb, Vec<(usize, f64, f64)>)>,
+    /// States with their intervals.
+    pub states: Vec<TimelineState>,
 }
 
 impl Timeline {
@@ -716,14 +738,18 @@ impl Timeline {
 
     /// Add a state (legend entry); returns its index.
     pub fn state(&mut self, name: &str, color: Rgb) -> usize {
-        self.states.push((name.to_owned(), color, Vec::new()));
+        self.states.push(TimelineState {
+            name: name.to_owned(),
+            color,
+            spans: Vec::new(),
+        });
         self.states.len() - 1
     }
 
     /// Mark `row` as in `state` from `start` to `end`.
     pub fn span(&mut self, row: usize, state: usize, start: f64, end: f64) {
         if let Some(s) = self.states.get_mut(state) {
-            s.2.push((row, start, end));
+            s.spans.push(Span { row, start, end });
         }
     }
 
@@ -742,23 +768,30 @@ impl Timeline {
         c.hide_y_ticks = true;
         let y_of = |row: usize| n - 1.0 - row as f64;
         let (mut t0, mut t1) = (f64::INFINITY, f64::NEG_INFINITY);
-        for (name, color, spans) in &self.states {
+        for state in &self.states {
             c.rects.push(Rects {
-                name: name.clone(),
-                color: *color,
-                rects: spans
+                name: state.name.clone(),
+                color: state.color,
+                rects: state
+                    .spans
                     .iter()
-                    .filter(|(r, a, b)| *r < self.rows.len() && a.is_finite() && b.is_finite())
-                    .map(|&(r, a, b)| {
-                        t0 = t0.min(a);
-                        t1 = t1.max(b);
-                        Rect {
-                            x0: a,
-                            x1: b,
-                            y0: y_of(r) + 0.5 * (1.0 - TIMELINE_BAND),
-                            y1: y_of(r) + 0.5 * (1.0 + TIMELINE_BAND),
-                        }
-                    })
+                    .filter(|s| s.row < self.rows.len() && s.start.is_finite() && s.end.is_finite())
+                    .map(
+                        |&Span {
+                             row: r,
+                             start: a,
+                             end: b,
+                         }| {
+                            t0 = t0.min(a);
+                            t1 = t1.max(b);
+                            Rect {
+                                x0: a,
+                                x1: b,
+                                y0: y_of(r) + 0.5 * (1.0 - TIMELINE_BAND),
+                                y1: y_of(r) + 0.5 * (1.0 + TIMELINE_BAND),
+                            }
+                        },
+                    )
                     .collect(),
             });
         }
