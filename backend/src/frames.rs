@@ -251,7 +251,7 @@ impl FrameSource {
     }
 
     /// [`FrameSource::for_each_gray_at`] in colour: only the frames at `indices` (strictly
-    /// increasing) are decoded.
+    /// increasing) are decoded; `f(k, image of frame indices[k])`.
     pub fn for_each_color_at(
         &self,
         indices: &[usize],

@@ -165,7 +165,8 @@ pub fn for_each_pick(
     let mut unique = picks.to_vec();
     unique.dedup();
     let mut next = 0usize;
-    source.for_each_color_at(&unique, |i, frame| {
+    source.for_each_color_at(&unique, |u, frame| {
+        let i = unique[u];
         while next < picks.len() && picks[next] == i {
             f(next, &frame)?;
             next += 1;
