@@ -16,7 +16,7 @@ mod video;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
-use nalgebra::{Quaternion, Translation3, UnitQuaternion, Vector3};
+use nalgebra::UnitQuaternion;
 use serde::Deserialize;
 
 use kiwi_core::geometry::{Pose, interpolate_pose};
@@ -215,21 +215,10 @@ struct RawRow {
 }
 
 fn pose_of(p: [f64; 3], q: [f64; 4], path: &Path, line: usize) -> Result<Pose> {
-    let quat = Quaternion::new(q[3], q[0], q[1], q[2]);
-    let norm = quat.norm();
-    if !(p.iter().chain(q.iter()).all(|v| v.is_finite()) && (norm - 1.0).abs() < 1e-3) {
-        return Err(BackendError::Input {
-            path: path.to_path_buf(),
-            message: format!(
-                "line {line}: expected a finite position and a unit quaternion, found {p:?} and \
-                 {q:?}; re-run `kiwi run --force outputs`"
-            ),
-        });
-    }
-    Ok(Pose::from_parts(
-        Translation3::from(Vector3::from(p)),
-        UnitQuaternion::from_quaternion(quat),
-    ))
+    crate::formats::tables::pose_from_row(p, q).map_err(|m| BackendError::Input {
+        path: path.to_path_buf(),
+        message: format!("line {line}: {m}; re-run `kiwi run --force outputs`"),
+    })
 }
 
 /// Read an episode's `<wrist>.csv` (written by [`crate::outputs`]).

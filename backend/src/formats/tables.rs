@@ -23,6 +23,29 @@ pub const TRAJECTORY_HEADER: &str = "t,px,py,pz,qx,qy,qz,qw,sigma_p,sigma_r,supp
 /// Quaternions further than this from unit norm are rejected rather than normalised.
 const QUATERNION_NORM_TOLERANCE: f64 = 1e-3;
 
+/// The pose of a table row from its position and `(qx, qy, qz, qw)` quaternion, every value
+/// finite and the quaternion of unit norm (within [`QUATERNION_NORM_TOLERANCE`]; it is not
+/// normalised). The error says what is wrong; the caller adds the file and row.
+pub(crate) fn pose_from_row(p: [f64; 3], q_xyzw: [f64; 4]) -> std::result::Result<Pose, String> {
+    if !p.iter().chain(&q_xyzw).all(|v| v.is_finite()) {
+        return Err(format!(
+            "expected a finite position and quaternion, found {p:?} and {q_xyzw:?}"
+        ));
+    }
+    let [x, y, z, w] = q_xyzw;
+    let q = Quaternion::new(w, x, y, z);
+    if (q.norm() - 1.0).abs() > QUATERNION_NORM_TOLERANCE {
+        return Err(format!(
+            "quaternion (qx,qy,qz,qw) has norm {:.6}, expected 1; write unit quaternions",
+            q.norm()
+        ));
+    }
+    Ok(Isometry3::from_parts(
+        Translation3::from(nalgebra::Vector3::from(p)),
+        UnitQuaternion::from_quaternion(q),
+    ))
+}
+
 fn input(path: &Path, message: String) -> BackendError {
     BackendError::Input {
         path: path.to_path_buf(),
@@ -148,24 +171,12 @@ pub fn read_observations(path: &Path) -> Result<Vec<PoseObservation>> {
                     )
                 })?;
         }
-        let q = Quaternion::new(v[7], v[4], v[5], v[6]);
-        if (q.norm() - 1.0).abs() > QUATERNION_NORM_TOLERANCE {
-            return Err(input(
-                path,
-                format!(
-                    "line {row}: quaternion (qx,qy,qz,qw) has norm {:.6}, expected 1; write unit \
-                     quaternions",
-                    q.norm()
-                ),
-            ));
-        }
+        let scene_from_imu = pose_from_row([v[1], v[2], v[3]], [v[4], v[5], v[6], v[7]])
+            .map_err(|m| input(path, format!("line {row}: {m}")))?;
         out.push(PoseObservation {
             t: v[0],
             source,
-            scene_from_imu: Isometry3::from_parts(
-                Translation3::new(v[1], v[2], v[3]),
-                UnitQuaternion::from_quaternion(q),
-            ),
+            scene_from_imu,
         });
     }
     if out.is_empty() {
@@ -266,20 +277,8 @@ pub fn parse_localizations(text: &str, path: &Path) -> Result<Vec<Localization>>
             for (k, slot) in v.iter_mut().enumerate() {
                 *slot = number(2 + k)?;
             }
-            let q = Quaternion::new(v[6], v[3], v[4], v[5]);
-            if (q.norm() - 1.0).abs() > QUATERNION_NORM_TOLERANCE {
-                return Err(input(
-                    path,
-                    format!(
-                        "line {row}: quaternion (qx,qy,qz,qw) has norm {:.6}, expected 1",
-                        q.norm()
-                    ),
-                ));
-            }
-            Isometry3::from_parts(
-                Translation3::new(v[0], v[1], v[2]),
-                UnitQuaternion::from_quaternion(q),
-            )
+            pose_from_row([v[0], v[1], v[2]], [v[3], v[4], v[5], v[6]])
+                .map_err(|m| input(path, format!("line {row}: {m}")))?
         } else {
             Pose::identity()
         };
@@ -476,16 +475,11 @@ pub fn read_fused(path: &Path) -> Result<Vec<FusedRow>> {
                 num(k).map(Some)
             }
         };
-        let q = Quaternion::new(num(8)?, num(5)?, num(6)?, num(7)?);
-        if (q.norm() - 1.0).abs() > QUATERNION_NORM_TOLERANCE {
-            return Err(input(
-                path,
-                format!(
-                    "line {row}: quaternion has norm {:.6}, expected 1",
-                    q.norm()
-                ),
-            ));
-        }
+        let scene_from_imu = pose_from_row(
+            [num(2)?, num(3)?, num(4)?],
+            [num(5)?, num(6)?, num(7)?, num(8)?],
+        )
+        .map_err(|m| input(path, format!("line {row}: {m}")))?;
         let mut cov = nalgebra::Matrix6::zeros();
         let mut k = 18;
         for a in 0..6 {
@@ -500,10 +494,7 @@ pub fn read_fused(path: &Path) -> Result<Vec<FusedRow>> {
             t_camera: num(0)?,
             node: crate::fusion::FusedNode {
                 t: num(1)?,
-                scene_from_imu: Isometry3::from_parts(
-                    Translation3::new(num(2)?, num(3)?, num(4)?),
-                    UnitQuaternion::from_quaternion(q),
-                ),
+                scene_from_imu,
                 velocity: nalgebra::Vector3::new(num(9)?, num(10)?, num(11)?),
                 bias: crate::fusion::preint::ImuBias {
                     acc: nalgebra::Vector3::new(num(12)?, num(13)?, num(14)?),
