@@ -18,7 +18,6 @@
 //! relocalization every 4th frame after two failures, no view-support rule, no whole-map
 //! attempt), `KIWI_RELOC_MAP_CANDIDATES` (look-alike landmarks per keypoint of the whole-map
 //! attempt; 0 turns it off), `KIWI_RELOC_MAP_ONLY=1` (build and check the maps, no query),
-//! `KIWI_RELOC_MIN_FAST` (the mapping front end's fallback FAST threshold; 0 turns it off),
 //! `KIWI_RELOC_SERVE_UNTRUSTED=1` (localize even in a map its own check refused, to see what
 //! it would give).
 
@@ -33,8 +32,7 @@ use common::reloc::{
 };
 
 use kiwi_backend::vision::align::trajectory_error;
-use kiwi_backend::vision::episode::{LensStream, build_map_with_tracker, localize_stream};
-use kiwi_backend::vision::frontend::TrackerOptions;
+use kiwi_backend::vision::episode::{LensStream, build_map_with_orb, localize_stream};
 use kiwi_backend::vision::localize::{LocalizationStatus, LocalizerOptions};
 use kiwi_fixtures::scenario::Scenario;
 use kiwi_fixtures::scene::{RoomKind, Scene, SceneOptions};
@@ -156,15 +154,8 @@ fn main() {
         let render_s = started.elapsed().as_secs_f64();
         let stream = LensStream::open(&mapping, camera, lens, None, None).unwrap();
         let (cpu0, t0) = (cpu_seconds(), Instant::now());
-        let mut tracker = TrackerOptions {
-            orb: options.orb,
-            ..TrackerOptions::default()
-        };
-        if let Ok(t) = std::env::var("KIWI_RELOC_MIN_FAST") {
-            tracker.min_fast_threshold = t.parse().unwrap();
-        }
         let (map, summary) =
-            build_map_with_tracker(&stream, true, &tracker, &mut |_, _| {}).unwrap();
+            build_map_with_orb(&stream, true, &options.orb, &mut |_, _| {}).unwrap();
         let (map_cpu, map_wall) = (cpu_seconds() - cpu0, t0.elapsed().as_secs_f64());
         let mapping_truth = truth_poses(&mapping, camera, lens);
         let alignment = Alignment::new(&map, &mapping_truth);
@@ -199,22 +190,7 @@ fn main() {
             map_wall,
             map_cpu
         );
-        let q = &summary.quality;
-        println!(
-            "[{tag}] map quality: {} ({}); forward/reversed disagreement {} of the depth, reversed coverage {:.0} %, {:.0} landmarks per keyframe, p10 shared by consecutive keyframes {:.0}, {:.2} keyframes per frame",
-            if q.trustworthy {
-                "trustworthy"
-            } else {
-                "NOT trustworthy"
-            },
-            q.reason,
-            q.direction_disagreement
-                .map_or("-".into(), |d| format!("{:.2} %", 100.0 * d)),
-            100.0 * q.reversed_coverage,
-            q.landmarks_per_keyframe,
-            q.shared_landmarks_p10,
-            q.keyframes_per_frame
-        );
+        println!("[{tag}] map quality: {}", summary.quality);
         if env("KIWI_RELOC_MAP_ONLY", "0") == "1" {
             continue;
         }

@@ -17,7 +17,8 @@
 //! CPU). The ten rooms and seeds
 //! of the acceptance are `every_room_kind_meets_the_relocalization_acceptance`, ignored in
 //! `make test` (~10 min, and it fails today: the kitchen relocalizes from its first frame but
-//! loses tracking later, 87-94 % localized; the workshop's 320 px maps drift, 1.4-11 % off the
+//! loses tracking later, 87-94 % localized (measured before whole-map attempts were capped at 10 per
+//! lost run); the workshop's 320 px maps drift, 1.4-11 % off the
 //! truth, and are refused by their own check, so their queries are lost; see docs/vision.md). A third test localizes a sweep beyond the divided room's partition (a
 //! part of the room the map never saw, papered with the same photos) in the table side's map:
 //! it must be reported lost, not placed. A fourth maps a texture-poor workshop whose map drifts
@@ -69,7 +70,7 @@ const CASES: [(RoomKind, u64, &str); 10] = [
 ];
 
 /// The cases that meet the whole acceptance today (measured: 153/153 from the first frame,
-/// 166/166 from the first frame, 176/176 after 0.63 s; medians 9-11 mm, worst 22 mm).
+/// 166/166 and 176/176 from the first frame; medians 9-11 mm, worst 22 mm).
 const PASSING: [(RoomKind, u64, &str); 3] = [
     (RoomKind::Photos, 2, "left/rear"),
     (RoomKind::Studio, 4, "right/rear"),
@@ -271,8 +272,9 @@ fn a_map_that_drifted_is_refused_and_serves_no_pose() {
     let (map, summary) = build_map(&stream, &mut |_, _| {}).unwrap();
     eprintln!("workshop 2 map quality: {:?}", summary.quality);
     assert!(!summary.quality.trustworthy, "{:?}", summary.quality);
+    // Refused by the coverage rule: the reversed run posed 29 % of the keyframes.
     assert!(
-        summary.quality.reason.contains("reverse"),
+        summary.quality.reason.contains("posed only"),
         "{:?}",
         summary.quality
     );
@@ -281,6 +283,7 @@ fn a_map_that_drifted_is_refused_and_serves_no_pose() {
     let (results, s) =
         localize_stream(&map, &qstream, &LocalizerOptions::default(), &mut |_, _| {}).unwrap();
     assert_eq!(s.localized, 0, "{s:?}");
+    assert!(!results.is_empty());
     assert!(
         results
             .iter()

@@ -145,18 +145,9 @@ pub fn run_map(a: &MapArgs) -> Result<()> {
         );
         let q = &summary.quality;
         if q.trustworthy {
-            println!(
-                "quality: trustworthy (forward and reversed mapping agree within {})",
-                q.direction_disagreement.map_or("-".into(), |d| format!(
-                    "{:.2} % of the scene depth",
-                    100.0 * d
-                ))
-            );
+            println!("quality: {q}");
         } else {
-            println!(
-                "quality: NOT trustworthy, no pose will be localized in this map: {}",
-                q.reason
-            );
+            println!("quality: no pose will be localized in this map: {q}");
         }
     }
     Ok(())

@@ -297,24 +297,12 @@ pub fn build_map_with_orb(
     orb_options: &OrbOptions,
     progress: &mut dyn FnMut(usize, usize),
 ) -> Result<(VisualMap, MapSummary)> {
+    let start = Instant::now();
     let tracker_options = TrackerOptions {
         orb: *orb_options,
         ..TrackerOptions::default()
     };
-    build_map_with_tracker(stream, loop_closure, &tracker_options, progress)
-}
-
-/// [`build_map_with`] with the front end's settings (detection thresholds, track count, the
-/// ORB settings of the front end and the keyframes).
-pub fn build_map_with_tracker(
-    stream: &LensStream,
-    loop_closure: bool,
-    tracker_options: &TrackerOptions,
-    progress: &mut dyn FnMut(usize, usize),
-) -> Result<(VisualMap, MapSummary)> {
-    let start = Instant::now();
-    let orb_options = &tracker_options.orb;
-    let mut tracker = FrameTracker::new(*tracker_options, stream.mask.clone())?;
+    let mut tracker = FrameTracker::new(tracker_options, stream.mask.clone())?;
     let n = stream.frames.len();
     let mut frames = Vec::with_capacity(n);
     stream.for_each_frame(|i, img| {
@@ -477,6 +465,15 @@ pub fn localize_stream(
     let start = Instant::now();
     let mut localizer = stream_localizer(map, stream, options)?;
     let n = stream.frames.len();
+    if let Some(why) = localizer.refusal() {
+        // A refused map serves no pose: the frames need not be decoded.
+        let results: Vec<FrameLocalization> = (stream.frames.iter().enumerate())
+            .map(|(i, f)| FrameLocalization::lost(i as u32, f.t, 0, why.to_string()))
+            .collect();
+        progress(n, n);
+        let summary = summarize(&results, start.elapsed().as_secs_f64());
+        return Ok((results, summary));
+    }
     let mut results = Vec::with_capacity(n);
     stream.for_each_frame(|i, img| {
         results.push(localizer.process(i as u32, stream.frames[i].t, &img)?);

@@ -41,10 +41,6 @@ pub struct TrackerOptions {
     pub klt: KltOptions,
     /// ORB settings of detection.
     pub orb: OrbOptions,
-    /// FAST threshold of a second detection when the first (at `orb.fast_threshold`) finds
-    /// fewer keypoints than the tracks missing (texture-poor views); 0 or the same threshold
-    /// turns it off.
-    pub min_fast_threshold: i32,
 }
 
 impl Default for TrackerOptions {
@@ -61,9 +57,6 @@ impl Default for TrackerOptions {
             coverage_interval: 3,
             klt: KltOptions::default(),
             orb: OrbOptions::default(),
-            // Off: a fallback at 7 (ORB-SLAM's) made the texture-poor workshop's maps worse,
-            // not better (320 px, seed 1: keyframe ATE 1.4 % -> 16.6 %; docs/vision.md).
-            min_fast_threshold: 0,
         }
     }
 }
@@ -72,8 +65,6 @@ impl Default for TrackerOptions {
 pub struct FrameTracker {
     options: TrackerOptions,
     orb: OrbExtractor,
-    /// Detection at the lower FAST threshold (`TrackerOptions::min_fast_threshold`), if on.
-    orb_low: Option<OrbExtractor>,
     /// Describes the keypoints that start tracks (see `FrameTracker::new`).
     describer: OrbExtractor,
     mask: Mask,
@@ -117,17 +108,6 @@ impl FrameTracker {
                 rectified: false,
                 ..options.orb
             })?,
-            orb_low: if options.min_fast_threshold > 0
-                && options.min_fast_threshold < options.orb.fast_threshold
-            {
-                Some(OrbExtractor::new(&OrbOptions {
-                    rectified: false,
-                    fast_threshold: options.min_fast_threshold,
-                    ..options.orb
-                })?)
-            } else {
-                None
-            },
             describer: OrbExtractor::new(&options.orb)?,
             share: options.target_tracks.div_ceil(usable).max(1),
             options,
@@ -196,14 +176,7 @@ impl FrameTracker {
             let mut detect_mask = self.mask.clone();
             let r = self.options.min_distance_px;
             block_disks(&mut detect_mask, survivors.iter().map(|s| s.1), r);
-            let mut found = self.orb.extract(&image, Some(&detect_mask), camera)?;
-            let missing = wanted.saturating_sub(survivors.len());
-            if let Some(low) = self.orb_low.as_mut()
-                && few
-                && found.keypoints.len() < missing
-            {
-                found = low.extract(&image, Some(&detect_mask), camera)?;
-            }
+            let found = self.orb.extract(&image, Some(&detect_mask), camera)?;
             // Too few tracks: the strongest keypoints anywhere, up to the target. Coverage only:
             // first the cells below a fair share (even past the target), then up to the target.
             // (A fair share on every replenishment took weak-texture points over strong ones: a

@@ -93,7 +93,7 @@ pub struct FrameLocalization {
 
 impl FrameLocalization {
     /// A lost frame: no pose, the best rejected inlier count and why.
-    fn lost(frame: u32, t: f64, inliers: usize, reason: String) -> Self {
+    pub(crate) fn lost(frame: u32, t: f64, inliers: usize, reason: String) -> Self {
         Self {
             frame,
             t,
@@ -364,10 +364,11 @@ fn pixel_key(p: &Point2<f64>) -> (u64, u64) {
 /// One relocalization candidate as tried (for diagnostics against the truth).
 #[derive(Debug, Clone)]
 pub struct CandidateTrace {
-    /// The candidate keyframe.
+    /// The candidate keyframe; for the whole-map attempt, the keyframe viewing its estimate
+    /// best (0 without an estimate).
     pub keyframe: usize,
-    /// Its place-recognition score.
-    pub score: f64,
+    /// Its place-recognition score; `None` for the whole-map attempt.
+    pub score: Option<f64>,
     /// Descriptor matches: (query keypoint index, landmark).
     pub matches: Vec<(usize, u32)>,
     /// Inliers of the candidate's final estimate (0 without one).
@@ -452,10 +453,13 @@ pub struct Localizer {
     /// Relocalization attempts so far and their wall time (s): the cost reported per stream.
     attempts: usize,
     attempt_seconds: f64,
-    /// Why the map serves no poses (its own check refused it), if so.
+    /// Why the map serves no poses (its own check refused it): every frame's lost reason.
     refused: Option<String>,
     /// Whole-map attempts in the current run of frames without a pose.
     map_attempts_in_run: usize,
+    /// Train descriptors of every landmark and keyframe view with their landmarks, built at the
+    /// first whole-map attempt (the map never changes).
+    whole_map_train: std::cell::OnceCell<(Vec<Descriptor>, Vec<u32>)>,
 }
 
 fn vision_err(message: String) -> BackendError {
@@ -559,9 +563,21 @@ impl Localizer {
                 .quality
                 .as_ref()
                 .filter(|q| !q.trustworthy && !options.serve_untrusted_map)
-                .map(|q| q.reason.clone()),
+                .map(|q| {
+                    format!(
+                        "the map is not trustworthy: {}; rebuild it from a mapping episode with \
+                         more texture or slower motion",
+                        q.reason
+                    )
+                }),
             map_attempts_in_run: 0,
+            whole_map_train: std::cell::OnceCell::new(),
         })
+    }
+
+    /// Why no frame gets a pose in this map (its own check refused it), if so.
+    pub fn refusal(&self) -> Option<&str> {
+        self.refused.as_deref()
     }
 
     /// Relocalization attempts so far and their total wall time (s).
@@ -850,14 +866,7 @@ impl Localizer {
             )));
         }
         if let Some(why) = &self.refused {
-            return Ok(FrameLocalization::lost(
-                frame,
-                t,
-                0,
-                format!(
-                    "the map is not trustworthy: {why}; rebuild it from a mapping episode with more texture or slower motion"
-                ),
-            ));
+            return Ok(FrameLocalization::lost(frame, t, 0, why.clone()));
         }
         let pyramid = KltPyramid::new(image, &self.options.klt)?;
         let mut features: Option<FrameFeatures> = None;
@@ -1212,7 +1221,7 @@ impl Localizer {
             let local: Vec<u32> = set.into_iter().collect();
             // Match against every keyframe view of the window's landmarks (plus their
             // representatives), grouped by landmark.
-            let (train, groups) = self.train_set(&local, lo..=hi);
+            let (train, groups) = self.train_set(&local, lo..hi + 1);
             let matches = match_descriptor_groups(
                 &feats.descriptors,
                 &train,
@@ -1231,7 +1240,7 @@ impl Localizer {
             );
             self.judge_candidate(
                 attempt,
-                (k, score, &matches),
+                (Some((k, score)), &matches),
                 feats,
                 trace.as_deref_mut(),
                 &mut best,
@@ -1240,12 +1249,14 @@ impl Localizer {
             );
         }
         if best.is_none() && whole_map && self.options.relocalization_map_candidates > 0 {
-            let all: Vec<u32> = (0..self.positions.len() as u32).collect();
-            let (train, groups) = self.train_set(&all, 0..=n_kf.saturating_sub(1));
+            let (train, groups) = self.whole_map_train.get_or_init(|| {
+                let all: Vec<u32> = (0..self.positions.len() as u32).collect();
+                self.train_set(&all, 0..n_kf)
+            });
             let matches = match_descriptor_groups_ambiguous(
                 &feats.descriptors,
-                &train,
-                &groups,
+                train,
+                groups,
                 &self.options.matching,
                 self.options.relocalization_map_candidates,
             );
@@ -1258,15 +1269,9 @@ impl Localizer {
                 None,
                 self.options.relocalization_map_iterations,
             );
-            // Traced under the keyframe viewing its estimate best (the map has no other).
-            let k = attempt
-                .as_ref()
-                .ok()
-                .and_then(|e| self.viewing_order(&e.cam_from_map).first().copied())
-                .unwrap_or(0);
             self.judge_candidate(
                 attempt,
-                (k, f64::NAN, &matches),
+                (None, &matches),
                 feats,
                 trace,
                 &mut best,
@@ -1282,7 +1287,7 @@ impl Localizer {
     fn train_set(
         &self,
         landmarks: &[u32],
-        keyframes: std::ops::RangeInclusive<usize>,
+        keyframes: std::ops::Range<usize>,
     ) -> (Vec<Descriptor>, Vec<u32>) {
         let mut train: Vec<Descriptor> = Vec::new();
         let mut groups: Vec<u32> = Vec::new();
@@ -1343,14 +1348,18 @@ impl Localizer {
         let first_inliers = first.inliers.len();
         let mut e = first;
         for round in 0..self.options.relocalization_guided_rounds {
-            let landmarks = match window {
-                Some(w) if round == 0 => w.to_vec(),
-                _ => self.viewing_landmarks(
-                    &e.cam_from_map,
-                    self.options.relocalization_guided_keyframes,
-                ),
+            let viewed;
+            let landmarks: &[u32] = match window {
+                Some(w) if round == 0 => w,
+                _ => {
+                    viewed = self.viewing_landmarks(
+                        &e.cam_from_map,
+                        self.options.relocalization_guided_keyframes,
+                    );
+                    &viewed
+                }
             };
-            let mut guided = self.guided_matches(&e.cam_from_map, &landmarks, feats, grid);
+            let mut guided = self.guided_matches(&e.cam_from_map, landmarks, feats, grid);
             if window.is_none() {
                 // Guided matching across a 40-60° change of view finds fewer matches than the
                 // look-alike descriptor matches the pose already explains: keep those too (one
@@ -1368,6 +1377,12 @@ impl Localizer {
             };
             match self.estimate(&guided, &ransac) {
                 Ok(g) if replace(&g, &e) => e = g,
+                // The look-alike hypothesis is never judged on its own inliers.
+                Err(why) if round == 0 && window.is_none() => {
+                    return Err(format!(
+                        "guided matching around the look-alike hypothesis gave no pose: {why}"
+                    ));
+                }
                 _ => {
                     if round > 0 || window.is_none() {
                         break;
@@ -1391,21 +1406,34 @@ impl Localizer {
     fn judge_candidate(
         &self,
         attempt: std::result::Result<Estimate, String>,
-        (keyframe, score, matches): (usize, f64, &[DescriptorMatch]),
+        (candidate, matches): (Option<(usize, f64)>, &[DescriptorMatch]),
         feats: &FrameFeatures,
         trace: Option<&mut Vec<CandidateTrace>>,
         best: &mut Option<Estimate>,
         best_rejected: &mut usize,
         last_reason: &mut String,
     ) {
-        let verdict = attempt.as_ref().map_err(Clone::clone).and_then(|e| {
-            self.accept(e, self.options.min_inliers_relocalization)
-                .and_then(|()| self.check_view_support(e, feats))
-        });
+        let verdict = match &attempt {
+            Ok(e) => self
+                .accept(e, self.options.min_inliers_relocalization)
+                .and_then(|()| self.check_view_support(e, feats)),
+            Err(why) => Err(why.clone()),
+        };
         if let Some(t) = trace {
+            // A whole-map attempt is traced under the keyframe viewing its estimate best.
+            let keyframe = candidate.map_or_else(
+                || {
+                    attempt
+                        .as_ref()
+                        .ok()
+                        .and_then(|e| self.viewing_order(&e.cam_from_map).first().copied())
+                        .unwrap_or(0)
+                },
+                |(k, _)| k,
+            );
             t.push(CandidateTrace {
                 keyframe,
-                score,
+                score: candidate.map(|(_, s)| s),
                 matches: matches.iter().map(|m| (m.query, m.train as u32)).collect(),
                 inliers: attempt.as_ref().map_or(0, |e| e.inliers.len()),
                 cam_from_map: attempt.as_ref().ok().map(|e| e.cam_from_map),
@@ -1421,17 +1449,16 @@ impl Localizer {
                     *best = Some(e);
                 }
             }
-            (attempt, Err(why)) => {
+            (attempt, verdict) => {
                 if let Ok(e) = attempt {
                     *best_rejected = (*best_rejected).max(e.inliers.len());
                 }
-                *last_reason = if score.is_nan() {
-                    format!("whole map: {why}")
-                } else {
-                    format!("keyframe {keyframe}: {why}")
+                let why = verdict.err().unwrap_or_default();
+                *last_reason = match candidate {
+                    Some((k, _)) => format!("keyframe {k}: {why}"),
+                    None => format!("whole map: {why}"),
                 };
             }
-            (Err(_), Ok(())) => {}
         }
     }
 }

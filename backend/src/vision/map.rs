@@ -336,6 +336,21 @@ impl VisualMap {
                         .into(),
                 ));
             }
+            if q.reversed_coverage > 1.0
+                || q.trustworthy
+                    != crate::vision::quality::verdict(
+                        q.reversed_coverage,
+                        q.direction_disagreement,
+                    )
+                    .is_empty()
+            {
+                return Err(map_err(
+                    path,
+                    "field `quality`: the verdict `trustworthy` does not follow from the figures \
+                     beside it; rebuild the map with `kiwi map`"
+                        .into(),
+                ));
+            }
             if !q.trustworthy && q.reason.is_empty() {
                 return Err(map_err(
                     path,

@@ -28,11 +28,16 @@ pub fn session(root: &Path, name: &str, seed: u64, scenario: Scenario, duration_
 }
 
 /// The same session as [`session`], rendered once per test binary build and shared by the tests
-/// of that binary (nextest runs each test in its own process, possibly at the same time): kept
+/// of that binary (the folder is per binary) (nextest runs each test in its own process, possibly at the same time): kept
 /// under the build's temporary folder, written under a lock, and rendered again whenever the test
 /// binary is newer than the copy (the simulator may have changed). Tests must only read it.
 pub fn shared_session(name: &str, seed: u64, scenario: Scenario, duration_s: f64) -> PathBuf {
-    let key = format!("{name}-seed{seed}-{scenario:?}-{duration_s}s-320px");
+    // Per test binary: another binary sharing the folder would see this one's copy as stale.
+    let binary = std::env::current_exe()
+        .ok()
+        .and_then(|exe| exe.file_stem().map(|s| s.to_string_lossy().into_owned()))
+        .unwrap_or_default();
+    let key = format!("{binary}-{name}-seed{seed}-{scenario:?}-{duration_s}s-320px");
     let root = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("vision-sessions");
     std::fs::create_dir_all(&root).unwrap();
     let lock = std::fs::File::create(root.join(format!(".{key}.lock"))).unwrap();
