@@ -1272,15 +1272,10 @@ pub fn summary_json(report: &NoiseReport) -> serde_json::Value {
 /// Log-log plot of every axis's ADEV with its confidence band and the fitted terms: gyro axes
 /// in one panel, accelerometer axes in another, stacked into one SVG.
 pub fn plot(report: &NoiseReport, path: &Path) -> Result<()> {
-    use kiwi_plot::{Axis, Band, Chart, Corner, Mark, Series};
-    const AXIS_COLORS: [[u8; 3]; 3] = [[214, 39, 40], [44, 160, 44], [31, 119, 180]];
-    const TERM_COLORS: [[u8; 3]; 5] = [
-        [148, 103, 189],
-        [255, 127, 14],
-        [140, 86, 75],
-        [227, 119, 194],
-        [127, 127, 127],
-    ];
+    use kiwi_plot::{Axis, Band, Chart, Corner, Mark, PALETTE, Series};
+    // x, y, z in red, green, blue; the noise terms in the palette's other colours.
+    const AXIS_COLORS: [[u8; 3]; 3] = [PALETTE[3], PALETTE[2], PALETTE[0]];
+    const TERM_COLORS: [[u8; 3]; 5] = [PALETTE[4], PALETTE[1], PALETTE[5], PALETTE[6], PALETTE[7]];
     let mut panels = Vec::new();
     for (sensor, range, unit) in [
         ("Gyroscope", 0..3, "ADEV (rad/s)"),
@@ -1514,7 +1509,7 @@ pub struct WrittenNoise {
     pub result: PathBuf,
     /// Kalibr `imu.yaml`.
     pub kalibr_imu: PathBuf,
-    /// The Allan plot (PNG).
+    /// The Allan plot (SVG).
     pub plot: PathBuf,
     /// Markdown report.
     pub report: PathBuf,

@@ -96,7 +96,7 @@ pub struct IntrinsicsArgs {
     /// Lens name in the artifact (front, rear, main).
     #[arg(long, default_value = "front")]
     pub lens: String,
-    /// Result folder: lens.json, summary.json, rejected_corners.csv, report PNGs.
+    /// Result folder: lens.json, summary.json, rejected_corners.csv, report plots (SVG).
     #[arg(long)]
     pub out: PathBuf,
     /// Print the JSON summary.

@@ -1,12 +1,11 @@
-//! KIWI's charts, drawn once for both programs (the certification report of `kiwi-calib` and
-//! the session report of `kiwi`).
+//! KIWI's charts, in one crate that every program can use (the certification report of
+//! `kiwi-calib` draws with it).
 //!
 //! A [`Chart`] holds named axes (label with unit, linear or logarithmic, optional fixed range),
 //! data series drawn as lines, dashed lines or points, shaded bands, filled rectangles in data
-//! coordinates (histograms, bar charts, timeline bands, heat-map cells), arrows and text labels,
-//! and a legend. It renders to SVG with `plotters`: text stays `<text>` elements, so no system
-//! font is needed and the result is the same on every machine. The helpers [`histogram`],
-//! [`bars`] and [`Timeline`] build the rectangle layers of the common chart kinds.
+//! coordinates (bar charts, heat-map cells), arrows, and a legend. It renders to SVG with `plotters`: text stays `<text>` elements, so no system
+//! font is needed and the result is the same on every machine. The helper [`bars`] builds
+//! a bar chart's rectangles and [`decimate`] thins long point series.
 
 use std::path::Path;
 
@@ -60,7 +59,7 @@ pub const PALETTE: [Rgb; 10] = [
 
 /// Font size of the title (pixels).
 const TITLE_FONT_PX: u32 = 18;
-/// Font size of axis labels, ticks, legend and labels (pixels).
+/// font size of axis labels, ticks and legend (pixels).
 const LABEL_FONT_PX: u32 = 13;
 /// Room for the x tick labels and the x-axis name (pixels).
 const X_LABEL_AREA_PX: u32 = 45;
@@ -71,6 +70,8 @@ const Y_LABEL_AREA_PX: u32 = 70;
 const AUTO_RANGE_PAD: f64 = 0.04;
 /// Opacity of shaded bands.
 const BAND_OPACITY: f64 = 0.3;
+/// Colour of arrows (residual vectors): red stands out over the blue and grey layers.
+const ARROW_COLOR: Rgb = [200, 30, 30];
 /// Smallest and largest accepted image side (pixels): smaller charts cannot hold their
 /// labels, larger ones only bloat the pages they are embedded in.
 const SIDE_RANGE_PX: (u32, u32) = (120, 4000);
@@ -172,7 +173,7 @@ pub struct Rect {
     pub y1: f64,
 }
 
-/// Filled rectangles of one colour: histogram bins, bars, timeline bands, heat-map cells.
+/// Filled rectangles of one colour: bars, heat-map cells.
 #[derive(Debug, Clone)]
 pub struct Rects {
     /// Legend text (empty: not in the legend).
@@ -190,15 +191,6 @@ pub struct Arrow {
     pub from: (f64, f64),
     /// End `(x, y)`; drawn with a dot.
     pub to: (f64, f64),
-}
-
-/// A text label placed at a data point (its left end, vertically centred).
-#[derive(Debug, Clone)]
-pub struct Label {
-    /// Where, in data coordinates.
-    pub at: (f64, f64),
-    /// The text.
-    pub text: String,
 }
 
 /// Where the legend goes.
@@ -239,14 +231,8 @@ pub struct Chart {
     pub series: Vec<Series>,
     /// Arrows, drawn over the series.
     pub arrows: Vec<Arrow>,
-    /// Arrow colour.
-    pub arrow_color: Rgb,
-    /// Text labels, drawn last.
-    pub labels: Vec<Label>,
     /// Where the legend goes.
     pub legend: Corner,
-    /// Hide the y tick labels (timelines name their rows with labels instead).
-    pub hide_y_ticks: bool,
 }
 
 impl Chart {
@@ -263,10 +249,7 @@ impl Chart {
             bands: Vec::new(),
             series: Vec::new(),
             arrows: Vec::new(),
-            arrow_color: [200, 30, 30],
-            labels: Vec::new(),
             legend: Corner::TopRight,
-            hide_y_ticks: false,
         }
     }
 
@@ -286,21 +269,7 @@ impl Chart {
 
     /// The chart as an SVG document (also fit to be inlined in HTML).
     pub fn to_svg(&self) -> Result<String> {
-        self.check_size()?;
-        let mut buf = String::new();
-        {
-            let root =
-                SVGBackend::with_string(&mut buf, (self.width, self.height)).into_drawing_area();
-            self.draw_on(&root).map_err(|message| PlotError::Draw {
-                title: self.title.clone(),
-                message,
-            })?;
-            root.present().map_err(|e| PlotError::Draw {
-                title: self.title.clone(),
-                message: e.to_string(),
-            })?;
-        }
-        Ok(buf)
+        Self::stack_to_svg(std::slice::from_ref(self))
     }
 
     /// Charts stacked top to bottom in one SVG document (each keeps its own size; the
@@ -315,7 +284,7 @@ impl Chart {
         for c in charts {
             c.check_size()?;
         }
-        let width = charts.iter().map(|c| c.width).max().unwrap_or(first.width);
+        let width = charts.iter().map(|c| c.width).fold(first.width, u32::max);
         let height: u32 = charts.iter().map(|c| c.height).sum();
         let mut buf = String::new();
         {
@@ -463,9 +432,6 @@ impl Chart {
             .label_style(("sans-serif", LABEL_FONT_PX))
             .axis_desc_style(("sans-serif", LABEL_FONT_PX))
             .light_line_style(RGBColor(235, 235, 235));
-        if self.hide_y_ticks {
-            mesh.y_labels(0).disable_y_mesh();
-        }
         mesh.draw().map_err(err)?;
 
         let color = |c: Rgb| RGBColor(c[0], c[1], c[2]);
@@ -570,7 +536,7 @@ impl Chart {
             }
         }
         if !self.arrows.is_empty() {
-            let c = color(self.arrow_color);
+            let c = color(ARROW_COLOR);
             let arrows: Vec<&Arrow> = self
                 .arrows
                 .iter()
@@ -585,22 +551,6 @@ impl Chart {
                 .map_err(err)?;
             chart
                 .draw_series(arrows.iter().map(|a| Circle::new(a.to, 1, c.filled())))
-                .map_err(err)?;
-        }
-        if !self.labels.is_empty() {
-            let style = TextStyle::from(("sans-serif", LABEL_FONT_PX).into_font()).pos(
-                plotters::style::text_anchor::Pos::new(
-                    plotters::style::text_anchor::HPos::Left,
-                    plotters::style::text_anchor::VPos::Center,
-                ),
-            );
-            chart
-                .draw_series(
-                    self.labels
-                        .iter()
-                        .filter(|l| self.drawable(l.at.0, l.at.1))
-                        .map(|l| Text::new(l.text.clone(), l.at, style.clone())),
-                )
                 .map_err(err)?;
         }
         if legend_any {
@@ -623,60 +573,11 @@ impl Chart {
     }
 }
 
-/// Histogram bins of `values` over `range` (or the values' range) as rectangles of height =
-/// count; non-finite values are skipped.
-pub fn histogram(
-    name: &str,
-    color: Rgb,
-    values: &[f64],
-    bins: usize,
-    range: Option<(f64, f64)>,
-) -> Rects {
-    let finite: Vec<f64> = values.iter().copied().filter(|v| v.is_finite()).collect();
-    let bins = bins.max(1);
-    let (lo, hi) = range.unwrap_or_else(|| {
-        finite
-            .iter()
-            .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &v| {
-                (l.min(v), h.max(v))
-            })
-    });
-    let mut rects = Vec::new();
-    if lo.is_finite() && hi.is_finite() {
-        let (lo, hi) = if hi > lo {
-            (lo, hi)
-        } else {
-            (lo - 0.5, lo + 0.5)
-        };
-        let w = (hi - lo) / bins as f64;
-        let mut counts = vec![0usize; bins];
-        for v in finite.into_iter().filter(|v| (lo..=hi).contains(v)) {
-            counts[(((v - lo) / w) as usize).min(bins - 1)] += 1;
-        }
-        rects = counts
-            .iter()
-            .enumerate()
-            .filter(|(_, c)| **c > 0)
-            .map(|(i, &c)| Rect {
-                x0: lo + i as f64 * w,
-                x1: lo + (i + 1) as f64 * w,
-                y0: 0.0,
-                y1: c as f64,
-            })
-            .collect();
-    }
-    Rects {
-        name: name.to_owned(),
-        color,
-        rects,
-    }
-}
-
 /// Share of a category slot a bar fills (the rest is the gap between bars).
 const BAR_FILL: f64 = 0.7;
 
-/// One bar per value at x = 0, 1, 2, … (a bar chart; name the categories with [`Label`]s or in
-/// the axis label). Non-finite values leave their slot empty.
+/// One bar per value at x = 0, 1, 2, … (a bar chart; name the categories in the axis
+/// label). Non-finite values leave their slot empty.
 pub fn bars(name: &str, color: Rgb, values: &[f64]) -> Rects {
     Rects {
         name: name.to_owned(),
@@ -692,121 +593,6 @@ pub fn bars(name: &str, color: Rgb, values: &[f64]) -> Rects {
                 y1: v.max(0.0),
             })
             .collect(),
-    }
-}
-
-/// Height of a timeline band inside its row (the rest separates the rows).
-const TIMELINE_BAND: f64 = 0.7;
-
-/// One interval of a timeline row spent in a state.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Span {
-    /// Row index.
-    pub row: usize,
-    /// Start (x units).
-    pub start: f64,
-    /// End (x units).
-    pub end: f64,
-}
-
-/// A state of a timeline (one legend entry) and the intervals spent in it.
-#[derive(Debug, Clone, PartialEq)]
-pub struct TimelineState {
-    /// Legend name.
-    pub name: String,
-    /// Band colour.
-    pub color: Rgb,
-    /// Intervals in this state.
-    pub spans: Vec<Span>,
-}
-
-/// A timeline: one row per stream, time on x, coloured bands for the states a stream was in.
-#[derive(Debug, Clone, Default)]
-pub struct Timeline {
-    /// Row names, top to bottom.
-    pub rows: Vec<String>,
-    /// States with their intervals.
-    pub states: Vec<TimelineState>,
-}
-
-impl Timeline {
-    /// Add a row; returns its index.
-    pub fn row(&mut self, name: &str) -> usize {
-        self.rows.push(name.to_owned());
-        self.rows.len() - 1
-    }
-
-    /// Add a state (legend entry); returns its index.
-    pub fn state(&mut self, name: &str, color: Rgb) -> usize {
-        self.states.push(TimelineState {
-            name: name.to_owned(),
-            color,
-            spans: Vec::new(),
-        });
-        self.states.len() - 1
-    }
-
-    /// Mark `row` as in `state` from `start` to `end`.
-    pub fn span(&mut self, row: usize, state: usize, start: f64, end: f64) {
-        if let Some(s) = self.states.get_mut(state) {
-            s.spans.push(Span { row, start, end });
-        }
-    }
-
-    /// The chart (rows named by labels at the left of the time range).
-    pub fn chart(&self, width: u32, title: &str, time_label: &str) -> Chart {
-        let n = self.rows.len().max(1) as f64;
-        let height = (90 + 28 * self.rows.len().max(1) as u32 + 24 * self.states.len() as u32)
-            .clamp(SIDE_RANGE_PX.0, SIDE_RANGE_PX.1);
-        let mut c = Chart::new(
-            width,
-            height,
-            title,
-            Axis::new(time_label),
-            Axis::new("").with_range(-0.1, n + 0.1 * self.states.len() as f64 + 0.1),
-        );
-        c.hide_y_ticks = true;
-        let y_of = |row: usize| n - 1.0 - row as f64;
-        let (mut t0, mut t1) = (f64::INFINITY, f64::NEG_INFINITY);
-        for state in &self.states {
-            c.rects.push(Rects {
-                name: state.name.clone(),
-                color: state.color,
-                rects: state
-                    .spans
-                    .iter()
-                    .filter(|s| s.row < self.rows.len() && s.start.is_finite() && s.end.is_finite())
-                    .map(
-                        |&Span {
-                             row: r,
-                             start: a,
-                             end: b,
-                         }| {
-                            t0 = t0.min(a);
-                            t1 = t1.max(b);
-                            Rect {
-                                x0: a,
-                                x1: b,
-                                y0: y_of(r) + 0.5 * (1.0 - TIMELINE_BAND),
-                                y1: y_of(r) + 0.5 * (1.0 + TIMELINE_BAND),
-                            }
-                        },
-                    )
-                    .collect(),
-            });
-        }
-        if t0 < t1 {
-            let pad = 0.25 * (t1 - t0);
-            c.x.range = Some((t0 - pad, t1 + 0.02 * (t1 - t0)));
-            for (r, name) in self.rows.iter().enumerate() {
-                c.labels.push(Label {
-                    at: (t0 - pad * 0.95, y_of(r) + 0.5),
-                    text: name.clone(),
-                });
-            }
-        }
-        c.legend = Corner::TopRight;
-        c
     }
 }
 
@@ -891,19 +677,7 @@ mod tests {
     }
 
     #[test]
-    fn timeline_histogram_bars_and_arrows_render() {
-        let mut t = Timeline::default();
-        let r = t.row("left front");
-        let ok = t.state("front", PALETTE[0]);
-        t.span(r, ok, 0.0, 2.0);
-        let s = svg_of(&t.chart(700, "Support", "time (s)"));
-        assert!(
-            s.contains("left front") && s.contains("front") && s.contains("<rect"),
-            "{s}"
-        );
-
-        let h = histogram("n", PALETTE[0], &[1.0, 1.5, 2.0, f64::NAN, 3.0], 4, None);
-        assert_eq!(h.rects.iter().map(|r| r.y1).sum::<f64>(), 4.0);
+    fn bars_and_arrows_render() {
         let b = bars("", PALETTE[1], &[1.0, -2.0, f64::INFINITY]);
         assert_eq!(b.rects.len(), 2);
         assert!(b.rects[1].y0 == -2.0 && b.rects[1].y1 == 0.0);

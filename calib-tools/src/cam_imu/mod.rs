@@ -61,6 +61,8 @@ const HUBER_SIGMAS: f64 = 3.0;
 const OUTLIER_SIGMAS: f64 = 5.0;
 /// Floor of the corner noise (px): detections are never trusted below this.
 const MIN_PIXEL_SIGMA: f64 = 0.05;
+/// IMU residual samples kept for the plot (a line of a few thousand points shows the shape).
+const MAX_PLOTTED_IMU_RESIDUALS: usize = 4000;
 
 /// Options of `kiwi-calib cam-imu`.
 #[derive(Debug, Clone)]
@@ -959,10 +961,8 @@ fn plot_data(
         p.corner_residuals[*l].push((*t, r.norm()));
         p.corner_vectors[*l].push((r.x, r.y));
     }
-    let stride = (imu_res.len() / 4000).max(1);
-    p.imu_residuals = imu_res
+    p.imu_residuals = kiwi_plot::decimate(imu_res, MAX_PLOTTED_IMU_RESIDUALS)
         .iter()
-        .step_by(stride)
         .map(|(t, g, a)| (*t, g.norm(), a.norm()))
         .collect();
     for (l, obs) in lenses.iter().enumerate() {

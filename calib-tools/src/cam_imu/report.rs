@@ -11,15 +11,13 @@ use kiwi_core::io::{sha256_file, utc_now_rfc3339, write_atomic};
 
 use super::{CamImuOptions, CamImuResult, calibrate};
 use crate::error::{CalibError, Result};
-use kiwi_plot::{Axis, Chart, Mark, Series};
+use kiwi_plot::{Axis, Chart, Mark, PALETTE, Series, decimate};
 
 /// Colours of the lenses in plots.
-const LENS_COLORS: [[u8; 3]; 4] = [
-    [31, 119, 180],
-    [214, 39, 40],
-    [44, 160, 44],
-    [148, 103, 189],
-];
+const LENS_COLORS: [[u8; 3]; 4] = [PALETTE[0], PALETTE[3], PALETTE[2], PALETTE[4]];
+/// Corner residuals drawn per lens: each is an SVG element (~100 bytes), so more would make the
+/// report's pages megabytes heavy without showing more.
+const MAX_PLOTTED_CORNERS: usize = 5000;
 
 /// Files written.
 #[derive(Debug, Clone, Serialize)]
@@ -218,13 +216,12 @@ fn write_plots(result: &CamImuResult, out: &Path) -> Result<Vec<PathBuf>> {
         Axis::new("|residual| (px)"),
     );
     for (l, lens) in result.lenses.iter().enumerate() {
-        let pts = p.corner_residuals.get(l).cloned().unwrap_or_default();
-        let stride = (pts.len() / 20000).max(1);
+        let pts = p.corner_residuals.get(l).map_or(&[][..], Vec::as_slice);
         fig.series.push(Series {
             name: lens.name.clone(),
             color: LENS_COLORS[l % LENS_COLORS.len()],
             mark: Mark::Points(1),
-            points: pts.into_iter().step_by(stride).collect(),
+            points: decimate(pts, MAX_PLOTTED_CORNERS),
         });
     }
     let path = out.join("reprojection_time.svg");
@@ -240,13 +237,12 @@ fn write_plots(result: &CamImuResult, out: &Path) -> Result<Vec<PathBuf>> {
         Axis::new("dv (px)").with_range(-lim, lim),
     );
     for (l, lens) in result.lenses.iter().enumerate() {
-        let pts = p.corner_vectors.get(l).cloned().unwrap_or_default();
-        let stride = (pts.len() / 20000).max(1);
+        let pts = p.corner_vectors.get(l).map_or(&[][..], Vec::as_slice);
         fig.series.push(Series {
             name: lens.name.clone(),
             color: LENS_COLORS[l % LENS_COLORS.len()],
             mark: Mark::Points(1),
-            points: pts.into_iter().step_by(stride).collect(),
+            points: decimate(pts, MAX_PLOTTED_CORNERS),
         });
     }
     let path = out.join("reprojection_scatter.svg");
@@ -262,13 +258,13 @@ fn write_plots(result: &CamImuResult, out: &Path) -> Result<Vec<PathBuf>> {
     );
     fig.series.push(Series {
         name: "gyro x100".into(),
-        color: [31, 119, 180],
+        color: PALETTE[0],
         mark: Mark::Line(1),
         points: p.imu_residuals.iter().map(|r| (r.0, 100.0 * r.1)).collect(),
     });
     fig.series.push(Series {
         name: "accel".into(),
-        color: [255, 127, 14],
+        color: PALETTE[1],
         mark: Mark::Line(1),
         points: p.imu_residuals.iter().map(|r| (r.0, r.2)).collect(),
     });

@@ -27,7 +27,7 @@ pub struct WrittenFiles {
     pub summary: PathBuf,
     /// Rejected corners (CSV).
     pub rejected: PathBuf,
-    /// Report PNGs.
+    /// Report plots (SVG).
     pub plots: Vec<PathBuf>,
 }
 
