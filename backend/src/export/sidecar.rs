@@ -112,40 +112,37 @@ fn write_file(to: &Path, bytes: &[u8], files: &mut Vec<SidecarFile>, base: &Path
     Ok(())
 }
 
-/// Files directly in `dir` with a carried extension, sorted.
-fn carried_files(dir: &Path) -> Vec<PathBuf> {
+/// The entries of `dir` that `keep` accepts, sorted (none when it cannot be read).
+fn sorted_entries(dir: &Path, keep: impl Fn(&Path) -> bool) -> Vec<PathBuf> {
     let mut v: Vec<PathBuf> = std::fs::read_dir(dir)
         .into_iter()
         .flatten()
         .flatten()
         .map(|e| e.path())
-        .filter(|p| {
-            p.is_file()
-                && p.extension()
-                    .and_then(|e| e.to_str())
-                    .is_some_and(|e| CARRIED_EXTENSIONS.contains(&e))
-        })
+        .filter(|p| keep(p))
         .collect();
     v.sort();
     v
 }
 
+/// Files directly in `dir` with a carried extension, sorted.
+fn carried_files(dir: &Path) -> Vec<PathBuf> {
+    sorted_entries(dir, |p| {
+        p.is_file()
+            && p.extension()
+                .and_then(|e| e.to_str())
+                .is_some_and(|e| CARRIED_EXTENSIONS.contains(&e))
+    })
+}
+
 /// Stage folders under a `work/` folder (no temporary or old folders of an interrupted run).
 fn stage_dirs(work: &Path) -> Vec<PathBuf> {
-    let mut v: Vec<PathBuf> = std::fs::read_dir(work)
-        .into_iter()
-        .flatten()
-        .flatten()
-        .map(|e| e.path())
-        .filter(|p| {
-            p.is_dir()
-                && p.file_name()
-                    .and_then(|n| n.to_str())
-                    .is_some_and(|n| !n.starts_with('.'))
-        })
-        .collect();
-    v.sort();
-    v
+    sorted_entries(work, |p| {
+        p.is_dir()
+            && p.file_name()
+                .and_then(|n| n.to_str())
+                .is_some_and(|n| !n.starts_with('.'))
+    })
 }
 
 /// Write the sidecar of `exp` into `dir`.
