@@ -6,7 +6,8 @@
 
 Prints the dataset's episodes, rate, features and one frame: its state with the element names
 of meta/info.json, its task and the shape of every camera image (decoded from the mp4 at the
-row's timestamp, which LeRobot checks to within 1e-4 s)."""
+row's timestamp, which LeRobot checks to within 1e-4 s), and the shapes of the statistics a
+policy normalizes with."""
 import argparse
 import os
 
@@ -29,3 +30,8 @@ for name, value in zip(names, item["observation.state"].tolist()):
     print(f"  {name:>16} = {value: .6f}")
 for key in ds.meta.camera_keys:
     print(f"  {key}: {tuple(item[key].shape)}")
+# The statistics a policy normalizes its inputs with: per element for the state, per colour
+# channel (3, 1, 1) for each view.
+for key in ["observation.state", *ds.meta.camera_keys]:
+    s = ds.meta.stats[key]
+    print(f"  stats {key}: mean shape {tuple(s['mean'].shape)}, count {int(s['count'][0])}")

@@ -182,6 +182,29 @@ fn lerobot_export_reads_back_with_pyarrow_and_ffprobe() {
         stats["observation.state"]["mean"].as_array().unwrap().len(),
         16
     );
+    assert_eq!(stats["observation.state"]["count"], serde_json::json!([rows]));
+    // Image statistics per RGB channel, shaped (3, 1, 1), of pixel values scaled to 0..1, over
+    // every row's source frame (a short episode's frames are all sampled); each frame is one
+    // grey level.
+    for (c, camera) in ["left", "right"].iter().enumerate() {
+        let s = &stats[format!("observation.images.{camera}_front")];
+        let greys: Vec<f64> = (0..rows)
+            .map(|k| f64::from(grey(c, nearest_frame(c, t0 + k as f64 / fps))) / 255.0)
+            .collect();
+        let mean = greys.iter().sum::<f64>() / rows as f64;
+        let std = (greys.iter().map(|g| (g - mean).powi(2)).sum::<f64>() / rows as f64).sqrt();
+        let min = greys.iter().copied().fold(f64::INFINITY, f64::min);
+        let max = greys.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+        assert_eq!(s["count"], serde_json::json!([rows]), "{camera}");
+        for (name, want) in [("mean", mean), ("std", std), ("min", min), ("max", max)] {
+            let channels = s[name].as_array().unwrap();
+            assert_eq!(channels.len(), 3, "{camera} {name}: three channels");
+            for ch in channels {
+                let v = ch[0][0].as_f64().unwrap();
+                assert!((v - want).abs() < 1e-9, "{camera} {name}: {v}, want {want}");
+            }
+        }
+    }
 
     // Videos: every frame presented at its row's timestamp, showing the nearest source frame.
     for (c, camera) in ["left", "right"].iter().enumerate() {
@@ -312,6 +335,31 @@ fn lerobot_export_reads_back_with_pyarrow_and_ffprobe() {
         serde_json::json!([0.0])
     );
     assert_eq!(ec["kiwi/episode"], serde_json::json!(["ep0"]));
+    // Per-episode statistics, as LeRobot stores them: numeric features as lists, views as
+    // (3, 1, 1) nested lists; with one episode they equal the dataset's.
+    let es = &ep["schema"];
+    assert_eq!(es["stats/observation.state/mean"], "list<item: double>");
+    assert_eq!(es["stats/observation.state/count"], "list<item: int64>");
+    assert_eq!(
+        es["stats/observation.images.left_front/mean"],
+        "list<item: list<item: list<item: double>>>"
+    );
+    for key in [
+        "observation.state",
+        "action",
+        "timestamp",
+        "kiwi.support",
+        "observation.images.left_front",
+        "observation.images.right_front",
+    ] {
+        for stat in ["min", "max", "mean", "std", "count"] {
+            let column = &ec[format!("stats/{key}/{stat}")];
+            assert_eq!(
+                &column[0], &stats[key][stat],
+                "stats/{key}/{stat} of the episode equals the dataset's"
+            );
+        }
+    }
 }
 
 #[test]

@@ -3,6 +3,12 @@
 //! `videos/<key>/chunk-CCC/file-FFF.mp4` per view for each episode (file index = episode
 //! index, a thousand files per chunk, every video starting at timestamp 0).
 //!
+//! `meta/stats.json` and each episode's `stats/<feature>/<stat>` columns hold `min`, `max`,
+//! `mean`, `std` and `count` of every column, and per colour channel of every view (pixel
+//! values scaled to 0..1, on a sample of the frames as LeRobot samples them; see
+//! [`crate::export::stats`]), so that policies normalizing their inputs train as they would
+//! on a dataset LeRobot wrote.
+//!
 //! Rows sit on a fixed-rate grid of the session timeline; row `k` of an episode has
 //! `timestamp = k / fps` (from the episode's first row) and video frame `k` is presented at
 //! exactly that time. Each wrist's tool tip is resampled from its fused trajectory; the video
@@ -29,6 +35,7 @@ use kiwi_core::layout::ToolKind;
 
 use crate::error::Result;
 use crate::export::parquet::Table;
+use crate::export::stats::{ImageStats, Stats, Summary, image_sample_rows};
 use crate::export::video::{KEYFRAME_INTERVAL, PIX_FMT, VIDEO_CODEC, encode_frames};
 use crate::export::{
     ExportOptions, ExportReport, SessionExport, ViewStream, WristSample, choose_rate, create_dir,
@@ -67,46 +74,6 @@ fn data_path(chunk: usize, file: usize) -> String {
 
 fn video_path(key: &str, chunk: usize, file: usize) -> String {
     format!("videos/{key}/chunk-{chunk:03}/file-{file:03}.mp4")
-}
-
-/// Per-element statistics of a feature, as `stats.json` holds them.
-#[derive(Default)]
-struct Stats {
-    min: Vec<f64>,
-    max: Vec<f64>,
-    sum: Vec<f64>,
-    sum_sq: Vec<f64>,
-    count: u64,
-}
-
-impl Stats {
-    fn add(&mut self, row: &[f64]) {
-        if self.min.is_empty() {
-            self.min = vec![f64::INFINITY; row.len()];
-            self.max = vec![f64::NEG_INFINITY; row.len()];
-            self.sum = vec![0.0; row.len()];
-            self.sum_sq = vec![0.0; row.len()];
-        }
-        for (i, &v) in row.iter().enumerate() {
-            self.min[i] = self.min[i].min(v);
-            self.max[i] = self.max[i].max(v);
-            self.sum[i] += v;
-            self.sum_sq[i] += v * v;
-        }
-        self.count += 1;
-    }
-
-    fn to_json(&self) -> Value {
-        let n = self.count.max(1) as f64;
-        let mean: Vec<f64> = self.sum.iter().map(|s| s / n).collect();
-        let std: Vec<f64> = self
-            .sum_sq
-            .iter()
-            .zip(&mean)
-            .map(|(sq, m)| (sq / n - m * m).max(0.0).sqrt())
-            .collect();
-        json!({"min": self.min, "max": self.max, "mean": mean, "std": std, "count": [self.count]})
-    }
 }
 
 /// One episode's rows, ready for the data file.
@@ -150,7 +117,8 @@ pub fn write(exp: &SessionExport, options: &ExportOptions, dir: &Path) -> Result
     let width = nw * STATE_PER_WRIST;
     let mut report = ExportReport::default();
     let mut tasks: Vec<String> = Vec::new();
-    let mut stats: BTreeMap<String, Stats> = BTreeMap::new();
+    let mut stats_all: BTreeMap<String, Stats> = BTreeMap::new();
+    let mut image_stats: BTreeMap<String, ImageStats> = BTreeMap::new();
     let mut episodes_meta: Vec<EpisodeMeta> = Vec::new();
     let mut video_info: BTreeMap<String, (usize, usize)> = BTreeMap::new();
     let mut fps_used: Option<super::Rate> = None;
@@ -201,6 +169,8 @@ pub fn write(exp: &SessionExport, options: &ExportOptions, dir: &Path) -> Result
 
         let (chunk, file) = (ep_index / CHUNKS_SIZE, ep_index % CHUNKS_SIZE);
         let mut table = Table::default();
+        let mut ep_stats: BTreeMap<String, Stats> = BTreeMap::new();
+        let stats = &mut ep_stats;
         for k in 0..n {
             let st = &rows.state[k * width..(k + 1) * width];
             let ac = &rows.action[k * width..(k + 1) * width];
@@ -267,6 +237,11 @@ pub fn write(exp: &SessionExport, options: &ExportOptions, dir: &Path) -> Result
         table.write(&path)?;
 
         let mut videos = Vec::new();
+        let sampled = image_sample_rows(n);
+        let mut summaries: BTreeMap<String, Summary> = ep_stats
+            .iter()
+            .map(|(k, s)| (k.clone(), s.summary()))
+            .collect();
         for stream in &streams {
             let key = format!("observation.images.{}", stream.view.key());
             let (picks, worst) = stream.nearest_frames(&times);
@@ -275,9 +250,19 @@ pub fn write(exp: &SessionExport, options: &ExportOptions, dir: &Path) -> Result
             if let Some(parent) = path.parent() {
                 create_dir(parent)?;
             }
-            let size = encode_frames(&stream.source, &picks, rate, &path)?;
+            let mut images = ImageStats::default();
+            let size = encode_frames(&stream.source, &picks, rate, &path, |k, frame| {
+                if sampled.binary_search(&k).is_ok() {
+                    images.add(frame);
+                }
+            })?;
+            summaries.insert(key.clone(), images.summary());
+            image_stats.entry(key.clone()).or_default().merge(&images);
             video_info.insert(key.clone(), size);
             videos.push(key);
+        }
+        for (key, s) in ep_stats {
+            stats_all.entry(key).or_default().merge(&s);
         }
         tracing::info!(
             "export: episode {} as LeRobot episode {ep_index}: {n} rows at {:.4} Hz",
@@ -296,6 +281,7 @@ pub fn write(exp: &SessionExport, options: &ExportOptions, dir: &Path) -> Result
             duration: rate.time(n),
             t0_session: grid.t0,
             videos,
+            stats: summaries,
         });
         index += n;
         report.exported.push(ep.name.clone());
@@ -306,9 +292,14 @@ pub fn write(exp: &SessionExport, options: &ExportOptions, dir: &Path) -> Result
 
     write_episodes_meta(dir, &episodes_meta)?;
     write_tasks(dir, &tasks)?;
-    let stats_json: serde_json::Map<String, Value> = stats
+    let stats_json: serde_json::Map<String, Value> = stats_all
         .iter()
-        .map(|(k, s)| (k.clone(), s.to_json()))
+        .map(|(k, s)| (k.clone(), s.summary().to_json()))
+        .chain(
+            image_stats
+                .iter()
+                .map(|(k, s)| (k.clone(), s.summary().to_json())),
+        )
         .collect();
     crate::formats::results::write_json(&dir.join("meta/stats.json"), &stats_json)?;
     let info = info_json(
@@ -336,6 +327,8 @@ struct EpisodeMeta {
     duration: f64,
     t0_session: f64,
     videos: Vec<String>,
+    /// Per feature statistics of the episode (`stats/<feature>/<stat>` columns).
+    stats: BTreeMap<String, Summary>,
 }
 
 fn write_episodes_meta(dir: &Path, eps: &[EpisodeMeta]) -> Result<()> {
@@ -365,6 +358,28 @@ fn write_episodes_meta(dir: &Path, eps: &[EpisodeMeta]) -> Result<()> {
                 &format!("videos/{key}/to_timestamp"),
                 eps.iter().map(|e| e.duration).collect(),
             );
+        }
+    }
+    if let Some(first) = eps.first() {
+        for (key, summary) in &first.stats {
+            let of = |e: &EpisodeMeta| e.stats.get(key).cloned();
+            let all: Option<Vec<Summary>> = eps.iter().map(of).collect();
+            let Some(all) = all else {
+                return Err(crate::export::export_err(format!(
+                    "episode statistics of {key} are missing for some episodes"
+                )));
+            };
+            for (i, (name, _)) in summary.values().into_iter().enumerate() {
+                let rows: Vec<Vec<f64>> = all.iter().map(|s| s.values()[i].1.to_vec()).collect();
+                let column = format!("stats/{key}/{name}");
+                if summary.per_channel {
+                    t.f64_channel_lists(&column, &rows);
+                } else {
+                    t.f64_lists(&column, &rows);
+                }
+            }
+            let counts: Vec<Vec<i64>> = all.iter().map(|s| vec![s.count as i64]).collect();
+            t.i64_lists(&format!("stats/{key}/count"), &counts);
         }
     }
     t.i64("meta/episodes/chunk_index", vec![0; eps.len()]);

@@ -10,6 +10,7 @@
 pub mod lerobot;
 mod parquet;
 pub mod sidecar;
+pub mod stats;
 pub mod umi;
 mod video;
 

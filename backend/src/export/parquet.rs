@@ -5,7 +5,7 @@ use std::collections::HashMap;
 use std::path::Path;
 use std::sync::Arc;
 
-use arrow_array::builder::{ListBuilder, StringBuilder};
+use arrow_array::builder::{Float64Builder, Int64Builder, ListBuilder, StringBuilder};
 use arrow_array::{
     ArrayRef, FixedSizeListArray, Float32Array, Float64Array, Int64Array, RecordBatch, StringArray,
 };
@@ -61,6 +61,43 @@ impl Table {
         for row in values {
             for s in row {
                 b.values().append_value(s);
+            }
+            b.append(true);
+        }
+        self.push(name, Arc::new(b.finish()));
+    }
+
+    /// A list-of-float64 column (one list per row, of any length): how LeRobot's episode
+    /// statistics of a numeric feature are stored.
+    pub fn f64_lists(&mut self, name: &str, rows: &[Vec<f64>]) {
+        let mut b = ListBuilder::new(Float64Builder::new());
+        for row in rows {
+            b.values().append_slice(row);
+            b.append(true);
+        }
+        self.push(name, Arc::new(b.finish()));
+    }
+
+    /// A list-of-int64 column (one list per row).
+    pub fn i64_lists(&mut self, name: &str, rows: &[Vec<i64>]) {
+        let mut b = ListBuilder::new(Int64Builder::new());
+        for row in rows {
+            b.values().append_slice(row);
+            b.append(true);
+        }
+        self.push(name, Arc::new(b.finish()));
+    }
+
+    /// A column of per-channel values shaped `(channels, 1, 1)` per row (nested lists): how
+    /// LeRobot's episode statistics of an image feature are stored.
+    pub fn f64_channel_lists(&mut self, name: &str, rows: &[Vec<f64>]) {
+        let mut b = ListBuilder::new(ListBuilder::new(ListBuilder::new(Float64Builder::new())));
+        for row in rows {
+            for &v in row {
+                let channel = b.values();
+                channel.values().values().append_value(v);
+                channel.values().append(true);
+                channel.append(true);
             }
             b.append(true);
         }

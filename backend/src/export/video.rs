@@ -129,12 +129,14 @@ impl Drop for Encoder {
 }
 
 /// Encode `picks[k]` (frame indices of `source`, non-decreasing) as frame `k` of an mp4 at
-/// `rate`. Returns the frame size (width, height).
+/// `rate`, showing each frame to `inspect(k, frame)` as it goes. Returns the frame size
+/// (width, height).
 pub fn encode_frames(
     source: &FrameSource,
     picks: &[usize],
     rate: Rate,
     path: &Path,
+    mut inspect: impl FnMut(usize, &ColorImage),
 ) -> Result<(usize, usize)> {
     let (width, height) = source.resolution()?;
     let (width, height) = (width as usize, height as usize);
@@ -143,7 +145,10 @@ pub fn encode_frames(
         source,
         picks,
         |m| video_err(path, &m),
-        |_, frame| encoder.push(path, frame),
+        |k, frame| {
+            inspect(k, frame);
+            encoder.push(path, frame)
+        },
     )?;
     encoder.finish(path)?;
     Ok((width, height))
