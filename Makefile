@@ -3,7 +3,8 @@ SHELL := /bin/bash
 .DEFAULT_GOAL := help
 
 # System packages the build and the tools need (Debian names). `make deps` installs the missing ones.
-APT_PACKAGES := libopencv-dev clang libclang-dev libudev-dev pkg-config ffmpeg openscad
+# slurm-wlm and munge: the test that runs `kiwi batch` on a single-node Slurm cluster.
+APT_PACKAGES := libopencv-dev clang libclang-dev libudev-dev pkg-config ffmpeg openscad slurm-wlm munge
 # Python modules the export tests read datasets back with (independent readers), installed with
 # pip for the `python3` on PATH: Debian 12 has no python3-pyarrow, and Debian's python3-* packages
 # serve only /usr/bin/python3, which need not be the `python3` the tests run.

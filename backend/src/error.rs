@@ -9,6 +9,9 @@ pub enum BackendError {
     /// State estimation cannot run on the given data (what is wrong and what to do).
     #[error("{0}")]
     Estimation(String),
+    /// A batch plan or the cluster scheduler (what failed and what to do).
+    #[error("{0}")]
+    Batch(String),
     /// An input file cannot be used.
     #[error("{path}: {message}")]
     Input {

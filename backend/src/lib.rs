@@ -9,6 +9,7 @@
 //! prepared episode; [`inspect`] checks a session before anything runs; [`export`] writes the outputs as datasets
 //! (LeRobot v3.0, UMI, KIWI's sidecar).
 
+pub mod batch;
 pub mod error;
 pub mod export;
 pub mod formats;

@@ -3,6 +3,7 @@
 use anyhow::Result;
 use clap::{Parser, Subcommand};
 
+mod batch;
 mod export;
 mod fuse;
 mod gripper;
@@ -37,6 +38,10 @@ enum Command {
     /// Show where every stage of a session stands: current, stale (and which input changed),
     /// failed (and why) or not run.
     Status(run::StatusArgs),
+    /// Run a session's episodes on a Slurm cluster: plan, write and submit the batch scripts,
+    /// follow them, resubmit what is missing or failed.
+    #[command(subcommand)]
+    Batch(batch::BatchCommand),
     /// Place cameras on one timeline from their audio (fingerprints + GCC-PHAT + drift fit).
     ///
     /// Either name audio files (`--audio NAME=FILE`, the first is the reference) or run the
@@ -100,7 +105,11 @@ fn output(command: &Command) -> Option<&std::path::Path> {
         Command::Gripper(a) => a.out.as_deref(),
         Command::Ingest(a) => Some(&a.session),
         Command::Export(a) => Some(&a.out),
-        Command::Run(_) | Command::Status(_) | Command::Sync(_) | Command::Inspect(_) => None,
+        Command::Run(_)
+        | Command::Status(_)
+        | Command::Batch(_)
+        | Command::Sync(_)
+        | Command::Inspect(_) => None,
     }
 }
 
@@ -124,6 +133,7 @@ fn main() -> Result<()> {
             }
         }
         Command::Status(args) => run::status_cmd(&args)?,
+        Command::Batch(command) => batch::run_batch_cmd(command)?,
         Command::Sync(args) => sync::run_sync_cmd(args)?,
         Command::Fuse(args) => fuse::run_fuse_cmd(args)?,
         Command::Metric(args) => metric::run_metric_cmd(&args)?,
