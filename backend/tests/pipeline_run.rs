@@ -1,5 +1,5 @@
 //! `kiwi run` as a command: a run killed during localization resumes and ends byte-identical to
-//! an uninterrupted run (with another thread count), `kiwi status` says where stages stand, and
+//! an uninterrupted run (with another thread count, datasets included), `kiwi status` says where stages stand, and
 //! a map episode that cannot be mapped gives every episode an `unusable` verdict naming the
 //! stream, with exit status 2.
 
@@ -59,6 +59,20 @@ fn results(session: &Path) -> Vec<(String, Vec<u8>)> {
         .into_iter()
         .map(|(p, b)| (format!("work/{p}"), b))
         .collect();
+    all.extend(files(&session.join("exports")).into_iter().map(|(p, b)| {
+        // The sidecar's index holds every carried file's digest; the manifests hold wall times.
+        let b = if p.ends_with("sidecar.json") {
+            let mut index: serde_json::Value = serde_json::from_slice(&b).unwrap();
+            index["files"]
+                .as_array_mut()
+                .unwrap()
+                .retain(|f| !f["path"].as_str().unwrap().ends_with("manifest.json"));
+            index.to_string().into_bytes()
+        } else {
+            b
+        };
+        (format!("exports/{p}"), b)
+    }));
     for ep in ["ep000", "ep001"] {
         for sub in ["work", "out"] {
             let dir = session.join("episodes").join(ep).join(sub);
@@ -97,6 +111,10 @@ fn localization_started(session: &Path) -> bool {
 fn a_killed_run_resumes_to_byte_identical_results() {
     let tmp = tempfile::tempdir().unwrap();
     let a = small_session(&tmp.path().join("a"), Vec::new());
+    // With the datasets on: their stages run last, and resume like the others.
+    let mut text = std::fs::read_to_string(&a).unwrap();
+    text.push_str("\n[export]\nformats = [\"lerobot\", \"sidecar\"]\n");
+    std::fs::write(&a, text).unwrap();
     let b_dir = tmp.path().join("b");
     copy_inputs(a.parent().unwrap(), &b_dir);
     let b = b_dir.join("session.toml");
@@ -109,6 +127,34 @@ fn a_killed_run_resumes_to_byte_identical_results() {
     let report: serde_json::Value = serde_json::from_slice(&out.stdout)
         .unwrap_or_else(|e| panic!("{e}: {}", String::from_utf8_lossy(&out.stderr)));
     println!("uninterrupted: {}", report["counts"]);
+    let stages = report["stages"].as_array().unwrap();
+    let usable: Vec<&str> = ["ep000", "ep001"]
+        .into_iter()
+        .filter(|ep| {
+            let q = a
+                .parent()
+                .unwrap()
+                .join(format!("episodes/{ep}/out/quality.json"));
+            let q: serde_json::Value =
+                serde_json::from_str(&std::fs::read_to_string(q).unwrap()).unwrap();
+            q["verdict"] != "unusable"
+        })
+        .collect();
+    assert!(
+        !usable.is_empty(),
+        "some episode is usable: {}",
+        report["counts"]
+    );
+    for name in ["session/export-lerobot", "session/export-sidecar"] {
+        let s = stages.iter().find(|s| s["stage"] == name).unwrap();
+        assert_eq!(s["outcome"], "ran", "{s}");
+    }
+    let info: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(a.parent().unwrap().join("exports/lerobot/meta/info.json"))
+            .unwrap(),
+    )
+    .unwrap();
+    assert_eq!(info["total_episodes"], usable.len(), "{info}");
 
     // Kill a second run (another thread count) as soon as it localizes.
     let mut child = Command::new(KIWI)
