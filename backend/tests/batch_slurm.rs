@@ -49,7 +49,8 @@ fn free_port() -> u16 {
         .port()
 }
 
-/// munged, slurmctld and slurmd, stopped (killed) when dropped.
+/// munged, slurmctld and slurmd, stopped (killed) when dropped. Every address is 127.0.0.1, so
+/// the machine's host name need not resolve.
 struct Cluster {
     conf: PathBuf,
     daemons: Vec<Child>,
@@ -117,7 +118,7 @@ impl Cluster {
             std::fs::create_dir_all(dir.join(sub)).unwrap();
         }
         let conf = format!(
-            "ClusterName=kiwitest\nSlurmctldHost={host}\nSlurmUser=root\nSlurmdUser=root\n\
+            "ClusterName=kiwitest\nSlurmctldHost={host}(127.0.0.1)\nSlurmUser=root\nSlurmdUser=root\n\
              SlurmctldPort={}\nSlurmdPort={}\nAuthType=auth/munge\nCredType=cred/munge\n\
              AuthInfo=socket={}\nStateSaveLocation={}\nSlurmdSpoolDir={}\n\
              SlurmctldPidFile={}\nSlurmdPidFile={}\nSlurmctldLogFile={}\nSlurmdLogFile={}\n\
@@ -125,7 +126,7 @@ impl Cluster {
              JobAcctGatherType=jobacct_gather/none\nAccountingStorageType=accounting_storage/none\n\
              JobCompType=jobcomp/none\nSchedulerType=sched/backfill\nSelectType=select/cons_tres\n\
              SelectTypeParameters=CR_CPU\nReturnToService=2\nMailProg=/bin/true\n\
-             NodeName={host} CPUs={cpus} RealMemory={mem_mb} State=UNKNOWN\n\
+             NodeName={host} NodeAddr=127.0.0.1 CPUs={cpus} RealMemory={mem_mb} State=UNKNOWN\n\
              PartitionName=kiwi Nodes={host} Default=YES MaxTime=INFINITE State=UP\n",
             free_port(),
             free_port(),
