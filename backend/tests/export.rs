@@ -182,7 +182,10 @@ fn lerobot_export_reads_back_with_pyarrow_and_ffprobe() {
         stats["observation.state"]["mean"].as_array().unwrap().len(),
         16
     );
-    assert_eq!(stats["observation.state"]["count"], serde_json::json!([rows]));
+    assert_eq!(
+        stats["observation.state"]["count"],
+        serde_json::json!([rows])
+    );
     // Image statistics per RGB channel, shaped (3, 1, 1), of pixel values scaled to 0..1, over
     // every row's source frame (a short episode's frames are all sampled); each frame is one
     // grey level.
