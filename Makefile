@@ -8,7 +8,7 @@ APT_PACKAGES := libopencv-dev clang libclang-dev libudev-dev pkg-config ffmpeg o
 # Python modules the export tests read datasets back with (independent readers), installed with
 # pip for the `python3` on PATH: Debian 12 has no python3-pyarrow, and Debian's python3-* packages
 # serve only /usr/bin/python3, which need not be the `python3` the tests run.
-PY_MODULES := pyarrow pandas zarr
+PY_MODULES := pyarrow pandas zarr pycolmap
 # Only for `make hardware-renders` (OpenSCAD's PNG export needs an X display).
 RENDER_PACKAGES := xvfb xauth
 HARDWARE_OUT ?= build/hardware

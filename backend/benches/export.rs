@@ -41,6 +41,7 @@ fn main() {
         frames: (duration * synthetic::RATE).round() as usize,
         width: resolution,
         height: resolution,
+        rear_lens: false,
     };
     let tmp = tempfile::tempdir().unwrap();
     let root = std::env::var("KIWI_BENCH_DIR")

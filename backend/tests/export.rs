@@ -29,6 +29,7 @@ const SPEC: Synthetic = Synthetic {
     frames: 60,
     width: 64,
     height: 48,
+    rear_lens: false,
 };
 const FRAMES: usize = SPEC.frames;
 const W: u32 = SPEC.width;

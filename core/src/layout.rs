@@ -132,7 +132,7 @@ pub struct Session {
 }
 
 /// The dataset formats an `[export]` table may name.
-pub const EXPORT_FORMATS: [&str; 3] = ["lerobot", "umi", "sidecar"];
+pub const EXPORT_FORMATS: [&str; 5] = ["lerobot", "umi", "sidecar", "colmap", "nerfstudio"];
 
 /// `[export]` of `session.toml`: the datasets `kiwi run` writes into `exports/<format>/` once
 /// every episode's outputs are current (the options of `kiwi export`).
@@ -147,6 +147,10 @@ pub struct ExportConfig {
     /// Views as `camera.lens` [default: every wrist's front lens and the head camera's lenses].
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub views: Option<Vec<String>>,
+    /// Images per second and lens stream of the scene exports (`colmap`, `nerfstudio`)
+    /// [default: 1 Hz].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rate: Option<f64>,
 }
 
 /// Parse `session.toml` text; an error names the field (`wrists.left.tool`) and its line.
@@ -314,6 +318,16 @@ impl Session {
                     "a rate in Hz above 0",
                     fps.to_string(),
                     "remove it to export at the recording's own rate",
+                ));
+            }
+            if let Some(rate) = x.rate
+                && !(rate.is_finite() && rate > 0.0)
+            {
+                return Err(CoreError::invalid_value(
+                    "export.rate",
+                    "images per second and lens stream, above 0",
+                    rate.to_string(),
+                    "remove it to export about one image per second",
                 ));
             }
         }

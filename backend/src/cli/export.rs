@@ -1,4 +1,5 @@
-//! `kiwi export`: write a session's episodes as a dataset (LeRobot v3.0, UMI, KIWI sidecar).
+//! `kiwi export`: write a session's episodes as a dataset (LeRobot v3.0, UMI, KIWI sidecar) or
+//! as a scene-reconstruction input (COLMAP, nerfstudio).
 
 use std::path::PathBuf;
 
@@ -12,8 +13,9 @@ pub struct ExportArgs {
     /// The session's session.toml (its episodes must have been through `kiwi run`).
     #[arg(long)]
     pub session: PathBuf,
-    /// lerobot (LeRobot v3.0: parquet + mp4), umi (dataset.zarr.zip) or sidecar (every output
-    /// at full rate, without loss).
+    /// lerobot (LeRobot v3.0: parquet + mp4), umi (dataset.zarr.zip), sidecar (every output
+    /// at full rate, without loss), colmap (a COLMAP text model of posed wrist images, for
+    /// 3DGUT and gsplat) or nerfstudio (transforms.json, for nerfstudio and brush).
     #[arg(long)]
     pub format: ExportFormat,
     /// Output rate in Hz (lerobot, umi) [default: the slowest trajectory or view]; at most
@@ -24,6 +26,9 @@ pub struct ExportArgs {
     /// and the head camera].
     #[arg(long, value_delimiter = ',')]
     pub views: Option<Vec<String>>,
+    /// Images per second and lens stream (colmap, nerfstudio) [default: 1].
+    #[arg(long)]
+    pub rate: Option<f64>,
     /// Episodes, comma-separated [default: all]; unusable ones are left out with the reason.
     #[arg(long, value_delimiter = ',')]
     pub episodes: Option<Vec<String>>,
@@ -36,6 +41,7 @@ pub struct ExportArgs {
 pub fn run_export_cmd(args: &ExportArgs) -> Result<()> {
     let options = ExportOptions {
         fps: args.fps,
+        rate: args.rate,
         views: args.views.clone(),
         episodes: args.episodes.clone(),
     };
@@ -43,6 +49,9 @@ pub fn run_export_cmd(args: &ExportArgs) -> Result<()> {
     let report = export(&args.session, args.format, &options, &args.out)?;
     for (name, reason) in &report.skipped {
         eprintln!("left out {name}: {reason}");
+    }
+    for note in &report.notes {
+        println!("{note}");
     }
     let rate = report
         .fps

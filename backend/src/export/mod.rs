@@ -1,6 +1,8 @@
 //! Dataset exports (`kiwi export`): an episode's outputs (`episodes/<ep>/out/`) turned into the
 //! files robot-learning tools load as they are — a LeRobot v3.0 dataset ([`lerobot`]), UMI's
-//! zipped zarr replay buffer ([`umi`]), or KIWI's full-detail sidecar ([`sidecar`]).
+//! zipped zarr replay buffer ([`umi`]), KIWI's full-detail sidecar ([`sidecar`]) — or into the
+//! posed images, cameras and points that Gaussian-splatting trainers read ([`splat`]: a COLMAP
+//! text model or a nerfstudio `transforms.json`).
 //!
 //! This module holds what the formats share: which episodes are exported (an episode whose
 //! verdict is `unusable`, or that has no outputs, is left out with the reason logged), reading
@@ -10,6 +12,7 @@
 pub mod lerobot;
 mod parquet;
 pub mod sidecar;
+pub mod splat;
 pub mod stats;
 pub mod umi;
 mod video;
@@ -51,15 +54,22 @@ pub enum ExportFormat {
     Umi,
     /// KIWI's full-detail sidecar.
     Sidecar,
+    /// A COLMAP text model with posed images and points (3DGUT, gsplat).
+    Colmap,
+    /// A nerfstudio `transforms.json` with posed images and points (nerfstudio, brush).
+    Nerfstudio,
 }
 
 impl ExportFormat {
-    /// `lerobot`, `umi` or `sidecar`: the name on the command line and in `session.toml`.
+    /// `lerobot`, `umi`, `sidecar`, `colmap` or `nerfstudio`: the name on the command line and
+    /// in `session.toml`.
     pub fn name(self) -> &'static str {
         match self {
             Self::LeRobot => "lerobot",
             Self::Umi => "umi",
             Self::Sidecar => "sidecar",
+            Self::Colmap => "colmap",
+            Self::Nerfstudio => "nerfstudio",
         }
     }
 }
@@ -71,8 +81,11 @@ impl std::str::FromStr for ExportFormat {
             "lerobot" => Ok(Self::LeRobot),
             "umi" => Ok(Self::Umi),
             "sidecar" => Ok(Self::Sidecar),
+            "colmap" => Ok(Self::Colmap),
+            "nerfstudio" => Ok(Self::Nerfstudio),
             other => Err(format!(
-                "unknown export format `{other}`: expected lerobot, umi or sidecar"
+                "unknown export format `{other}`: expected lerobot, umi, sidecar, colmap or \
+                 nerfstudio"
             )),
         }
     }
@@ -88,6 +101,9 @@ pub struct ExportOptions {
     pub views: Option<Vec<String>>,
     /// Episodes by name [default: every episode of the session].
     pub episodes: Option<Vec<String>>,
+    /// Images per second and lens stream of the scene exports (`colmap`, `nerfstudio`)
+    /// [default: [`splat::DEFAULT_RATE_HZ`]].
+    pub rate: Option<f64>,
 }
 
 /// What an export wrote and what it left out.
@@ -104,6 +120,9 @@ pub struct ExportReport {
     /// Largest distance (s) between a row's timestamp and the capture time of the video frame
     /// chosen for it, over all views.
     pub max_frame_offset_s: f64,
+    /// What a user of the export should know (a lens model refitted for the format, and how
+    /// well), one sentence each.
+    pub notes: Vec<String>,
 }
 
 fn export_err(message: String) -> BackendError {
@@ -293,6 +312,8 @@ pub struct WristTrajectory {
 pub struct WristSample {
     /// `scene_from_tip`, interpolated on the SO(3)×R³ geodesic.
     pub scene_from_tip: Pose,
+    /// `scene_from_front_cam`, interpolated in the same way.
+    pub scene_from_front_cam: Pose,
     /// The larger tool-tip position sigma of the two frames around the row (m).
     pub tip_sigma_p_m: f64,
     /// The larger tool-tip rotation sigma (rad).
@@ -368,6 +389,11 @@ impl WristTrajectory {
         let opening = self.opening_at(ia, ib, t);
         Some(WristSample {
             scene_from_tip: interpolate_pose(&a.scene_from_tip, &b.scene_from_tip, s),
+            scene_from_front_cam: interpolate_pose(
+                &a.scene_from_front_cam,
+                &b.scene_from_front_cam,
+                s,
+            ),
             tip_sigma_p_m: a.tip_sigma_p_m.max(b.tip_sigma_p_m),
             tip_sigma_r_rad: a.tip_sigma_r_rad.max(b.tip_sigma_r_rad),
             support,
@@ -888,6 +914,10 @@ pub fn export(
         ExportFormat::LeRobot => lerobot::write(&exp, options, &partial),
         ExportFormat::Umi => umi::write(&exp, options, &partial),
         ExportFormat::Sidecar => sidecar::write(&exp, &partial),
+        ExportFormat::Colmap => splat::write(&exp, options, splat::SceneFormat::Colmap, &partial),
+        ExportFormat::Nerfstudio => {
+            splat::write(&exp, options, splat::SceneFormat::Nerfstudio, &partial)
+        }
     };
     match result {
         Ok(mut report) => {

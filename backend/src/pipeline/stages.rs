@@ -17,6 +17,7 @@ use super::context::{SessionContext, WristContext};
 use super::graph::{Lens, MapName, StageKind, id_of};
 use super::stage::{InputDigest, Manifest, StageId};
 use crate::error::{BackendError, Result};
+use crate::export::ExportFormat;
 use crate::formats::results::{
     MetricFile, PlacementFile, metric_from_localizations, placement_from_localizations,
     read_metric, read_placement, write_json,
@@ -324,15 +325,17 @@ pub fn inputs(ctx: &SessionContext, kind: &StageKind) -> Result<Vec<InputDigest>
             }
             v
         }
-        StageKind::Export { .. } => export_inputs(ctx)?,
+        StageKind::Export { format } => export_inputs(ctx, *format)?,
     })
 }
 
 /// What an export reads besides the episodes' outputs: the `[export]` settings,
 /// `session.toml`, the calibrations, and in every episode each camera's `meta.json` and the
 /// lens streams that are views of the dataset (the named views, else every wrist's front lens
-/// and the head camera's lenses).
-fn export_inputs(ctx: &SessionContext) -> Result<Vec<InputDigest>> {
+/// and the head camera's lenses; for the scene formats every wrist lens, and the maps with
+/// their metric and placement files, whose landmarks are the scene points).
+fn export_inputs(ctx: &SessionContext, format: ExportFormat) -> Result<Vec<InputDigest>> {
+    let scene = matches!(format, ExportFormat::Colmap | ExportFormat::Nerfstudio);
     let settings = serde_json::to_string(&ctx.session.export).unwrap_or_default();
     let mut v = vec![
         InputDigest {
@@ -360,7 +363,8 @@ fn export_inputs(ctx: &SessionContext) -> Result<Vec<InputDigest>> {
                     .filter(|(c, _)| *c == camera)
                     .map(|(_, l)| l.to_string())
                     .collect(),
-                None if camera == "head" => layout.read_meta(camera)?.lenses,
+                None if scene && camera == "head" => Vec::new(),
+                None if camera == "head" || scene => layout.read_meta(camera)?.lenses,
                 None => vec!["front".into()],
             };
             for lens in lenses {
@@ -369,6 +373,27 @@ fn export_inputs(ctx: &SessionContext) -> Result<Vec<InputDigest>> {
                     d.name = format!("{episode} {}", d.name);
                     v.push(d);
                 }
+            }
+        }
+    }
+    if scene {
+        let mut maps = vec![MapName::Rear];
+        maps.extend(ctx.wrists.keys().map(|s| MapName::Front(*s)));
+        for map in maps {
+            let stage = |kind: StageKind| id_of(&kind).dir(&ctx.root);
+            let mut files = vec![
+                stage(StageKind::Map { map }).join(MAP_FILE),
+                stage(StageKind::Metric { map }).join("metric.json"),
+            ];
+            if let MapName::Front(side) = map {
+                files.push(stage(StageKind::Placement { side }).join("placement.json"));
+            }
+            for f in files {
+                v.push(file_input(
+                    ctx,
+                    format!("{} {}", map.label(), f.display()),
+                    &f,
+                )?);
             }
         }
     }
@@ -450,10 +475,11 @@ pub fn run(env: &StageEnv<'_>, kind: &StageKind) -> Result<()> {
 /// A dataset of every usable episode, written into the stage's `out/` (published as
 /// `exports/<format>/`); episodes whose outputs failed or are unusable are left out, each with
 /// its reason in the summary.
-fn run_export(env: &StageEnv<'_>, format: crate::export::ExportFormat) -> Result<()> {
+fn run_export(env: &StageEnv<'_>, format: ExportFormat) -> Result<()> {
     let config = env.ctx.session.export.clone();
     let options = crate::export::ExportOptions {
         fps: config.as_ref().and_then(|x| x.fps),
+        rate: config.as_ref().and_then(|x| x.rate),
         views: config.and_then(|x| x.views),
         episodes: None,
     };

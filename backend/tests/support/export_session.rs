@@ -2,7 +2,9 @@
 //! tool-tip trajectories and gripper openings, front-lens frames whose grey level names the
 //! frame, a right camera 37 ms late with 40 ppm drift, a usable episode `ep0` and an unusable
 //! one `ep1`. Only `out/`, `quality.json`, `meta.json`, the frames and `sync.json` exist: what
-//! the exporters read.
+//! the exporters read. [`add_scene_inputs`] adds what the scene exports read besides: the units'
+//! calibrations (left KB4, right Double Sphere) and the session's maps with their metric and
+//! placement files, the rear map's keyframes observing its landmarks at exported frames.
 
 #![allow(dead_code, clippy::unwrap_used, clippy::expect_used, missing_docs)]
 
@@ -26,6 +28,8 @@ pub struct Synthetic {
     pub width: u32,
     /// Image height (px, even).
     pub height: u32,
+    /// Whether each camera also has a rear lens (same frame times, as an X5's two lenses).
+    pub rear_lens: bool,
 }
 
 /// Front-lens rate of the synthetic cameras (Hz).
@@ -79,13 +83,18 @@ fn write_episode(spec: &Synthetic, root: &Path, name: &str, verdict: Verdict) {
         let cam_dir = ep.join(camera);
         let lens = cam_dir.join("front");
         std::fs::create_dir_all(lens.join("frames")).unwrap();
+        let lenses: Vec<String> = if spec.rear_lens {
+            vec!["front".into(), "rear".into()]
+        } else {
+            vec!["front".into()]
+        };
         let meta = CameraMeta {
             camera: camera.to_string(),
             unit_id: format!("X5-{camera}"),
             camera_model: "Insta360 X5".into(),
             mode: "30fps".into(),
             fps: RATE,
-            lenses: vec!["front".into()],
+            lenses: lenses.clone(),
             audio_rate_hz: 48000,
             source: "test".into(),
             recording: None,
@@ -134,6 +143,20 @@ fn write_episode(spec: &Synthetic, root: &Path, name: &str, verdict: Verdict) {
             .unwrap();
         }
         write_frames_csv(&lens.join("frames.csv"), &frames).unwrap();
+        if spec.rear_lens {
+            let rear = cam_dir.join("rear");
+            std::fs::create_dir_all(rear.join("frames")).unwrap();
+            for (i, f) in frames.iter().enumerate() {
+                image::GrayImage::from_pixel(
+                    spec.width,
+                    spec.height,
+                    image::Luma([grey(c, i).wrapping_add(1)]),
+                )
+                .save(rear.join(&f.file))
+                .unwrap();
+            }
+            write_frames_csv(&rear.join("frames.csv"), &frames).unwrap();
+        }
         std::fs::write(out.join(format!("{camera}.csv")), csv).unwrap();
     }
     let mut record = failed_record(name, "ep0", vec!["test reason".into()]);
@@ -232,4 +255,187 @@ pub fn nearest_frame(spec: &Synthetic, camera: usize, t: f64) -> usize {
             da.total_cmp(&db)
         })
         .unwrap()
+}
+
+/// Rear-map landmarks seen from each of its keyframes.
+pub const LANDMARKS_PER_KEYFRAME: usize = 24;
+/// Detection noise on the keyframes' feature pixels (px, deterministic).
+pub const FEATURE_NOISE_PX: f64 = 0.3;
+/// Rear lens time shift after the front lens's (s): inside one rig exposure.
+pub const REAR_SHIFT_S: f64 = 1e-4;
+
+/// `world_from_map` of the rear map's metric recovery (the scene frame from the raw map).
+pub fn rear_metric() -> kiwi_backend::vision::align::Sim3 {
+    kiwi_backend::vision::align::Sim3 {
+        scale: 2.0,
+        rotation: so3_exp(&Vector3::new(0.1, 0.2, -0.3)),
+        translation: Vector3::new(0.5, -0.2, 0.1),
+    }
+}
+
+fn sim_json(s: &kiwi_backend::vision::align::Sim3) -> serde_json::Value {
+    let q = s.rotation.coords;
+    serde_json::json!({
+        "scale": s.scale,
+        "rotation_xyzw": [q.x, q.y, q.z, q.w],
+        "translation_m": [s.translation.x, s.translation.y, s.translation.z],
+    })
+}
+
+fn write_metric(root: &Path, map: &str, sim: &kiwi_backend::vision::align::Sim3) {
+    let dir = root.join("work").join(format!("metric-{map}"));
+    std::fs::create_dir_all(&dir).unwrap();
+    let json = serde_json::json!({
+        "schema_version": 1, "lens": map, "world_from_map": sim_json(sim),
+        "scale_m_per_map_unit": sim.scale, "gravity_in_map": [0.0, 0.0, -1.0],
+        "accel_bias_m_s2": [0.0, 0.0, 0.0], "accel_bias_sigma_m_s2": [0.0, 0.0, 0.0],
+        "gyro_bias_rad_s": [0.0, 0.0, 0.0],
+        "conditioning": {"excitation_rms_m_s2": 1.0, "scale_sigma": 0.01,
+                         "gravity_sigma_deg": 0.1, "variance_factor": 1.0},
+        "frames_used": 100, "frames_lost": 0, "outliers_downweighted": 0,
+        "rms_position_m": 0.001, "rms_rotation_deg": 0.1, "iterations": 5,
+    });
+    std::fs::write(dir.join("metric.json"), json.to_string()).unwrap();
+}
+
+/// The units' calibrations: `X5-L` with KB4 lenses, `X5-R` with Double Sphere lenses, each lens
+/// `size` px square; the rear lens's time shift [`REAR_SHIFT_S`] after the front's.
+pub fn scene_calibrations(size: u32) -> [kiwi_core::artifact::UnitCalibration; 2] {
+    use kiwi_fixtures::unit::{LensModel, SimUnit};
+    [("L", 11, LensModel::Kb4), ("R", 12, LensModel::Ds)].map(|(u, seed, model)| {
+        let unit = SimUnit::x5(&format!("X5-{u}"), seed, size, model).unwrap();
+        let mut cal = unit.true_calibration("2026-01-01");
+        let front_shift = cal.lens("front").unwrap().time_shift_s.unwrap();
+        for l in &mut cal.lenses {
+            if l.name == "rear" {
+                l.time_shift_s = Some(front_shift + REAR_SHIFT_S);
+            }
+        }
+        cal
+    })
+}
+
+/// `front_from_rear` of a unit's calibration.
+pub fn front_from_rear(cal: &kiwi_core::artifact::UnitCalibration) -> Pose {
+    let f = cal.lens("front").unwrap().cam_from_imu().unwrap();
+    let r = cal.lens("rear").unwrap().cam_from_imu().unwrap();
+    f * r.inverse()
+}
+
+/// Add the scene exports' inputs to a session made by [`make_session`] with `rear_lens`: the
+/// calibrations of [`scene_calibrations`], and the maps. The rear map (built from the left
+/// rear lens of `ep0`) has a keyframe at the left camera's frame nearest each row of the
+/// `rate` grid, observing [`LANDMARKS_PER_KEYFRAME`] landmarks of its own with
+/// [`FEATURE_NOISE_PX`] of noise; the front maps have landmarks and no observations.
+pub fn add_scene_inputs(spec: &Synthetic, root: &Path, rate: f64) {
+    use kiwi_backend::vision::features::Descriptor;
+    use kiwi_backend::vision::map::{MapFeature, MapKeyframe, MapLandmark, MapPose, VisualMap};
+    use kiwi_core::camera::{CameraModel, bearing_from_angles};
+    assert!(spec.rear_lens && spec.width == spec.height);
+    let cals = scene_calibrations(spec.width);
+    for (u, cal) in ["L", "R"].iter().zip(&cals) {
+        let set = root.join(format!("units/X5-{u}/2026-01-01"));
+        std::fs::write(set.join("calibration.json"), cal.to_json().unwrap()).unwrap();
+    }
+    let descriptor = |k: u64| Descriptor([k.wrapping_mul(0x9E37_79B9_7F4A_7C15), k, !k, k << 7]);
+    // Rear map of the left unit.
+    let left = &cals[0];
+    let rear_cam = left.lens("rear").unwrap().camera().unwrap();
+    let front_from_rear = front_from_rear(left);
+    let metric = rear_metric();
+    let mut map = VisualMap::new("left", "rear", "ep0", &rear_cam);
+    let (t0, rows) = expected_grid(spec, rate);
+    for k in 0..rows {
+        let frame = nearest_frame(spec, 0, t0 + k as f64 / rate);
+        let t_cam = camera_time(0, frame);
+        let scene_from_rear = truth_tip(0, session_time(0, t_cam)) * front_from_rear;
+        let mut features = Vec::new();
+        for j in 0..LANDMARKS_PER_KEYFRAME {
+            let theta = 0.2 + 1.2 * (j as f64 / LANDMARKS_PER_KEYFRAME as f64);
+            let phi = 2.4 * j as f64;
+            let bearing = bearing_from_angles(theta, phi);
+            let depth = 1.0 + 0.1 * j as f64;
+            let p_scene = scene_from_rear * nalgebra::Point3::from(bearing.into_inner() * depth);
+            let p_map =
+                metric.rotation.inverse() * ((p_scene.coords - metric.translation) / metric.scale);
+            let id = map.landmarks.len() as u32;
+            map.landmarks.push(MapLandmark {
+                position: p_map.into(),
+                descriptor: descriptor(u64::from(id)),
+            });
+            let px = rear_cam.project(&bearing).unwrap();
+            let noise = FEATURE_NOISE_PX * ((j + k) as f64 * 1.7).sin();
+            features.push(MapFeature {
+                pixel: [px.x + noise, px.y - noise],
+                bearing: bearing.into_inner().into(),
+                descriptor: descriptor(u64::from(id)),
+                landmark: Some(id),
+            });
+        }
+        // `cam_from_map` in map units: the scene pose moved into the map frame.
+        let map_from_rear = Pose::from_parts(
+            Translation3::from(
+                metric.rotation.inverse()
+                    * ((scene_from_rear.translation.vector - metric.translation) / metric.scale),
+            ),
+            metric.rotation.inverse() * scene_from_rear.rotation,
+        );
+        map.keyframes.push(MapKeyframe {
+            frame: frame as u32,
+            t: t_cam,
+            cam_from_map: MapPose::from_pose(&map_from_rear.inverse()),
+            features,
+        });
+    }
+    map.train_vocabulary();
+    let dir = root.join("work/map-rear");
+    std::fs::create_dir_all(&dir).unwrap();
+    map.save(&dir.join("map.kmap")).unwrap();
+    write_metric(root, "rear", &metric);
+    // Front maps: landmarks only, and one keyframe that is no exported frame.
+    for (s, side) in ["left", "right"].iter().enumerate() {
+        let cam = cals[s].lens("front").unwrap().camera().unwrap();
+        let mut map = VisualMap::new(side, "front", "ep0", &cam);
+        let mut features = Vec::new();
+        for j in 0..5u32 {
+            map.landmarks.push(MapLandmark {
+                position: [0.1 * f64::from(j), 0.2, 1.0],
+                descriptor: descriptor(1000 + u64::from(j)),
+            });
+            features.push(MapFeature {
+                pixel: [10.0, 10.0],
+                bearing: [0.0, 0.0, 1.0],
+                descriptor: descriptor(1000 + u64::from(j)),
+                landmark: Some(j),
+            });
+        }
+        map.keyframes.push(MapKeyframe {
+            frame: 1_000_000,
+            t: 0.0,
+            cam_from_map: MapPose::from_pose(&Pose::identity()),
+            features,
+        });
+        map.train_vocabulary();
+        let dir = root.join(format!("work/map-front-{side}"));
+        std::fs::create_dir_all(&dir).unwrap();
+        map.save(&dir.join("map.kmap")).unwrap();
+        let sim = kiwi_backend::vision::align::Sim3 {
+            scale: 1.5,
+            rotation: so3_exp(&Vector3::new(0.0, 0.0, 0.3 * s as f64)),
+            translation: Vector3::new(0.0, 0.1, 0.0),
+        };
+        write_metric(root, &format!("front-{side}"), &sim);
+        let g = kiwi_backend::vision::align::Sim3 {
+            scale: 1.0,
+            rotation: so3_exp(&Vector3::new(0.05, 0.0, 0.0)),
+            translation: Vector3::new(0.2, 0.0, 0.0),
+        };
+        let dir = root.join(format!("work/placement-{side}"));
+        std::fs::create_dir_all(&dir).unwrap();
+        let json = serde_json::json!({
+            "schema_version": 1, "scene_from_front_map": sim_json(&g), "pairs": 10,
+            "inliers": 10, "rms_position_m": 0.001, "rms_rotation_deg": 0.1,
+        });
+        std::fs::write(dir.join("placement.json"), json.to_string()).unwrap();
+    }
 }
