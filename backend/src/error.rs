@@ -86,6 +86,9 @@ pub enum BackendError {
     /// A dataset export cannot be made as asked (what is wrong and what to do).
     #[error("{0}")]
     Export(String),
+    /// A chart of the session report could not be drawn.
+    #[error(transparent)]
+    Plot(#[from] kiwi_plot::PlotError),
     /// A computer-vision step failed (feature extraction, geometry, bundle adjustment, maps).
     #[error("{context}: {message}")]
     Vision {
