@@ -108,7 +108,7 @@ mod tests {
         );
         assert_eq!(chart.rects[0].rects.len(), 2);
         // The first row is drawn on top.
-        assert!(chart.rects[0].rects[0].y0 > chart.rects[1].rects[0].y1);
+        assert!(chart.rects[0].rects[0].y0 > chart.rects[0].rects[1].y1);
         let svg = chart.to_svg().unwrap_or_default();
         for text in [
             "left support",
