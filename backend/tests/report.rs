@@ -148,7 +148,7 @@ fn check_in_chromium(page: &Path, screenshot: &Path, scratch: &Path) -> bool {
     );
     let console = console_messages(&log);
     assert!(console.is_empty(), "console messages: {console:#?}");
-    let size = std::fs::metadata(screenshot).map(|m| m.len()).unwrap_or(0);
+    let size = std::fs::metadata(screenshot).map_or(0, |m| m.len());
     assert!(
         size > 10_000,
         "screenshot of {size} bytes; Chromium said:\n{log}"

@@ -9,6 +9,9 @@ use crate::{LABEL_FONT_PX, PlotError, Result, Rgb, SIDE_RANGE_PX, TITLE_FONT_PX}
 
 /// Radius of a node's disc (pixels).
 const NODE_RADIUS_PX: i32 = 24;
+/// Distance of the outermost nodes' centres from the drawing's left and right edges (pixels):
+/// room for the note under a node (about 25 characters).
+const NODE_MARGIN_PX: f64 = 100.0;
 /// Height of one note line below the graph (pixels).
 const NOTE_LINE_PX: u32 = 18;
 /// Room for the title above the graph (pixels).
@@ -89,9 +92,12 @@ impl NodeGraph {
         let cx = f64::from(self.width) / 2.0;
         let cy =
             f64::from(TITLE_AREA_PX) + (f64::from(self.height) - f64::from(TITLE_AREA_PX)) / 2.0;
-        let margin = f64::from(NODE_RADIUS_PX) * 2.5;
+        let margin = NODE_MARGIN_PX;
         let rx = (cx - margin).max(0.0);
-        let ry = ((f64::from(self.height) - f64::from(TITLE_AREA_PX)) / 2.0 - margin).max(0.0);
+        // Vertically, room for the disc and its note below it.
+        let ry = ((f64::from(self.height) - f64::from(TITLE_AREA_PX)) / 2.0
+            - 2.5 * f64::from(NODE_RADIUS_PX))
+        .max(0.0);
         let angle = std::f64::consts::PI + 2.0 * std::f64::consts::PI * k as f64 / n;
         let ry = if self.nodes.len() == 2 { 0.0 } else { ry };
         (
