@@ -2,9 +2,10 @@
 SHELL := /bin/bash
 .DEFAULT_GOAL := help
 
-# System packages the build and the tools need (Debian names). `make deps` installs the missing ones.
-# slurm-wlm and munge: the test that runs `kiwi batch` on a single-node Slurm cluster.
-APT_PACKAGES := libopencv-dev clang libclang-dev libudev-dev pkg-config ffmpeg openscad slurm-wlm munge
+# System packages the build, the tools and the tests need (Debian names; chromium opens the session
+# report page in its browser test; slurm-wlm and munge run `kiwi batch` on a single-node Slurm
+# cluster in its test). `make deps` installs the missing ones.
+APT_PACKAGES := libopencv-dev clang libclang-dev libudev-dev pkg-config ffmpeg openscad chromium slurm-wlm munge
 # Python modules the export tests read datasets back with (independent readers), installed with
 # pip for the `python3` on PATH: Debian 12 has no python3-pyarrow, and Debian's python3-* packages
 # serve only /usr/bin/python3, which need not be the `python3` the tests run.
@@ -66,6 +67,7 @@ demo: build
 	./target/release/kiwi-sim contact-sheet --out $(DEMO_OUT)/contact_sheet.png --seed $(DEMO_SEED) --tile 256
 	@echo "demo: units X5-DEMO-L and X5-DEMO-R certified into $(DEMO_OUT)/units (reports: $(DEMO_OUT)/units/*/*/report/index.md)"
 	@echo "demo: session in $(DEMO_OUT)/session; each episode's trajectories, TUM files and quality.json in $(DEMO_OUT)/session/episodes/<ep>/out/ (truth in its truth/ folder)"
+	@echo "demo: the session's report page (open it in a browser): $(DEMO_OUT)/session/report/index.html"
 
 test: deps
 	cargo fmt --all -- --check

@@ -89,6 +89,9 @@ pub enum BackendError {
     /// A dataset export cannot be made as asked (what is wrong and what to do).
     #[error("{0}")]
     Export(String),
+    /// A chart of the session report could not be drawn (boxed: the error stays small).
+    #[error(transparent)]
+    Plot(Box<kiwi_plot::PlotError>),
     /// A computer-vision step failed (feature extraction, geometry, bundle adjustment, maps).
     #[error("{context}: {message}")]
     Vision {
@@ -97,6 +100,12 @@ pub enum BackendError {
         /// What is wrong and what to do.
         message: String,
     },
+}
+
+impl From<kiwi_plot::PlotError> for BackendError {
+    fn from(e: kiwi_plot::PlotError) -> Self {
+        Self::Plot(Box::new(e))
+    }
 }
 
 /// Shorthand for results in this crate.

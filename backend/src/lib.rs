@@ -7,7 +7,7 @@
 //! graph (`kiwi run`); [`formats`] holds the files the stages exchange; [`frames`] reads a lens
 //! stream's frames (images or video) for every stage; [`ingest`] turns camera files into a
 //! prepared episode; [`inspect`] checks a session before anything runs; [`export`] writes the outputs as datasets
-//! (LeRobot v3.0, UMI, KIWI's sidecar).
+//! (LeRobot v3.0, UMI, KIWI's sidecar); [`report`] draws a session's report page.
 
 pub mod batch;
 pub mod error;
@@ -24,6 +24,7 @@ pub mod outputs;
 pub mod pipeline;
 pub mod placement;
 pub mod quality;
+pub mod report;
 pub mod sync;
 pub mod vision;
 

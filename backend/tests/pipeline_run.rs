@@ -5,31 +5,19 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::Command;
 use std::time::{Duration, Instant};
 
-use kiwi_fixtures::scenario::Scenario;
-use kiwi_fixtures::session::{Cover, SessionOptions, write_session};
+use kiwi_fixtures::session::{SessionOptions, write_session};
+
+#[path = "support/pipeline_sessions.rs"]
+mod sessions;
+use sessions::{small_session, unmappable_session};
 
 const KIWI: &str = env!("CARGO_BIN_EXE_kiwi");
 /// Longest the killed run may take to reach localization before the test gives up.
 const REACH_LOCALIZE: Duration = Duration::from_secs(600);
-
-fn small_session(dir: &Path, covers: Vec<Cover>) -> PathBuf {
-    let mut o = SessionOptions::new(dir);
-    o.seed = 5;
-    o.resolution = 320;
-    o.rate_hz = 29.97;
-    o.episodes = 2;
-    o.scenario = Scenario::Survey;
-    o.episode_scenarios = vec![Scenario::Survey, Scenario::Tabletop];
-    o.episode_durations = vec![10.0, 2.0];
-    o.duration_s = 10.0;
-    o.head = false;
-    o.covers = covers;
-    write_session(&o).unwrap().session_toml
-}
 
 /// Every file under `dir` (relative path → bytes), manifests left out (they hold wall times).
 fn files(dir: &Path) -> Vec<(String, Vec<u8>)> {
@@ -219,20 +207,6 @@ fn a_killed_run_resumes_to_byte_identical_results() {
             .flatten()
             .any(|e| { e.file_name().to_string_lossy().starts_with(".tmp-") })
     );
-}
-
-/// A two-episode session (160 px, 10 Hz, 3 s) whose mapping wrist's rear lens is covered for
-/// the whole map episode: nothing can be mapped.
-fn unmappable_session(dir: &Path) -> PathBuf {
-    let mut o = SessionOptions::new(dir.join("s"));
-    o.seed = 9;
-    o.resolution = 160;
-    o.rate_hz = 10.0;
-    o.episodes = 2;
-    o.duration_s = 3.0;
-    o.head = false;
-    o.covers = vec![Cover::parse("0:left:rear:0:3").unwrap()];
-    write_session(&o).unwrap().session_toml
 }
 
 #[test]

@@ -5,7 +5,15 @@
 //! data series drawn as lines, dashed lines or points, shaded bands, filled rectangles in data
 //! coordinates (bar charts, heat-map cells), arrows, and a legend. It renders to SVG with `plotters`: text stays `<text>` elements, so no system
 //! font is needed and the result is the same on every machine. The helper [`bars`] builds
-//! a bar chart's rectangles and [`decimate`] thins long point series.
+//! a bar chart's rectangles and [`decimate`] thins long point series. A [`Timeline`] (rows of
+//! coloured time spans, named on the y axis) and a [`NodeGraph`] (named nodes joined by
+//! labelled edges) serve the session report of `kiwi`.
+
+mod graph;
+mod timeline;
+
+pub use graph::{Edge, NodeGraph};
+pub use timeline::{Span, Timeline};
 
 use std::path::Path;
 
@@ -59,7 +67,7 @@ pub const PALETTE: [Rgb; 10] = [
 
 /// Font size of the title (pixels).
 const TITLE_FONT_PX: u32 = 18;
-/// font size of axis labels, ticks and legend (pixels).
+/// Font size of axis labels, ticks and legend (pixels).
 const LABEL_FONT_PX: u32 = 13;
 /// Room for the x tick labels and the x-axis name (pixels).
 const X_LABEL_AREA_PX: u32 = 45;
@@ -233,7 +241,16 @@ pub struct Chart {
     pub arrows: Vec<Arrow>,
     /// Where the legend goes.
     pub legend: Corner,
+    /// Names of the rows y = 0, 1, 2, … (bottom to top): when set, the y ticks show these
+    /// names instead of numbers (timelines, category charts).
+    pub y_categories: Vec<String>,
 }
+
+/// Width of one character of tick text (pixels, 13 px sans-serif), to size the y label area for
+/// category names.
+const CHAR_WIDTH_PX: u32 = 7;
+/// How close a y tick must be to a whole number to carry that row's category name.
+const CATEGORY_TICK_TOLERANCE: f64 = 1e-6;
 
 impl Chart {
     /// An empty chart.
@@ -250,6 +267,7 @@ impl Chart {
             series: Vec::new(),
             arrows: Vec::new(),
             legend: Corner::TopRight,
+            y_categories: Vec::new(),
         }
     }
 
@@ -419,19 +437,42 @@ impl Chart {
         Y::CoordDescType: ValueFormatter<f64>,
     {
         let err = |e: DrawingAreaErrorKind<_>| e.to_string();
+        let longest = self
+            .y_categories
+            .iter()
+            .map(|c| c.chars().count() as u32)
+            .max()
+            .unwrap_or(0);
+        let y_area = Y_LABEL_AREA_PX.max(CHAR_WIDTH_PX * longest + 30);
         let mut chart = ChartBuilder::on(root)
             .caption(&self.title, ("sans-serif", TITLE_FONT_PX))
             .margin(10)
             .x_label_area_size(X_LABEL_AREA_PX)
-            .y_label_area_size(Y_LABEL_AREA_PX)
+            .y_label_area_size(y_area)
             .build_cartesian_2d(x, y)
             .map_err(err)?;
+        let category = |v: &f64| -> String {
+            let k = v.round();
+            if (v - k).abs() > CATEGORY_TICK_TOLERANCE || k < 0.0 {
+                return String::new();
+            }
+            self.y_categories
+                .get(k as usize)
+                .cloned()
+                .unwrap_or_default()
+        };
         let mut mesh = chart.configure_mesh();
         mesh.x_desc(self.x.label.as_str())
             .y_desc(self.y.label.as_str())
             .label_style(("sans-serif", LABEL_FONT_PX))
             .axis_desc_style(("sans-serif", LABEL_FONT_PX))
             .light_line_style(RGBColor(235, 235, 235));
+        if !self.y_categories.is_empty() {
+            // One tick per row: the rows sit at whole numbers.
+            mesh.y_labels(self.y_categories.len() + 1)
+                .y_label_formatter(&category)
+                .disable_y_mesh();
+        }
         mesh.draw().map_err(err)?;
 
         let color = |c: Rgb| RGBColor(c[0], c[1], c[2]);

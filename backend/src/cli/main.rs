@@ -10,12 +10,13 @@ mod gripper;
 mod ingest;
 mod inspect;
 mod metric;
+mod report;
 mod run;
 mod sync;
 mod vision;
 
 /// Reconstruct KIWI episodes: audio sync, fisheye maps, metric recovery, localization, IMU
-/// fusion, gripper opening, head pose, floor height, dataset export.
+/// fusion, gripper opening, head pose, floor height, dataset export, session report.
 #[derive(Parser)]
 #[command(name = "kiwi", version, about, long_about = None)]
 struct Cli {
@@ -84,6 +85,11 @@ enum Command {
     /// LeRobot v3.0 dataset (parquet + mp4), UMI's dataset.zarr.zip, or KIWI's full-detail
     /// sidecar. Episodes whose verdict is unusable are left out with the reason.
     Export(export::ExportArgs),
+    /// Draw a session's report page: one self-contained HTML file (charts inline, opens from
+    /// disk) with each episode's tool-tip paths over the scene map, support per stream over
+    /// time, the sync graph, gripper openings, the verdict with its reasons and the stage
+    /// timings. `kiwi run` writes the same page as its last stage (SESSION/report/index.html).
+    Report(report::ReportArgs),
 }
 
 /// Split `NAME=VALUE`.
@@ -105,6 +111,7 @@ fn output(command: &Command) -> Option<&std::path::Path> {
         Command::Gripper(a) => a.out.as_deref(),
         Command::Ingest(a) => Some(&a.session),
         Command::Export(a) => Some(&a.out),
+        Command::Report(a) => a.out.as_deref(),
         Command::Run(_)
         | Command::Status(_)
         | Command::Batch(_)
@@ -144,6 +151,7 @@ fn main() -> Result<()> {
         Command::Inspect(args) => inspect::run_inspect_cmd(args)?,
         Command::Ingest(args) => ingest::run_ingest_cmd(&args)?,
         Command::Export(args) => export::run_export_cmd(&args)?,
+        Command::Report(args) => report::run_report_cmd(&args)?,
     }
     Ok(())
 }

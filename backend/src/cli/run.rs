@@ -23,7 +23,7 @@ pub struct RunArgs {
     #[arg(long, value_delimiter = ',')]
     pub episodes: Option<Vec<String>>,
     /// Re-run this stage and every stage after it (sync, map, tool, localize, metric,
-    /// placement, observations, fusion, gripper, outputs).
+    /// placement, observations, fusion, gripper, outputs, export, report).
     #[arg(long, value_name = "STAGE")]
     pub from: Option<String>,
     /// Re-run these stages even if their inputs are unchanged (`all` for every stage).
@@ -165,6 +165,16 @@ pub fn run_cmd(args: RunArgs) -> Result<i32> {
             for r in &e.reasons {
                 println!("  {:<12}   - {r}", "");
             }
+        }
+        let page = ctx
+            .root
+            .join(kiwi_backend::report::REPORT_DIR)
+            .join(kiwi_backend::report::PAGE_FILE);
+        if report.stages.iter().any(|s| {
+            s.stage == "session/report"
+                && matches!(s.outcome, Outcome::Ran { .. } | Outcome::Current)
+        }) {
+            println!("report: {}", page.display());
         }
         let failed = report.failed_episodes();
         println!(

@@ -200,6 +200,73 @@ pub struct Localization {
     pub map_from_cam: Pose,
 }
 
+/// One frame of a localizer's `poses.csv` as the quality record and the session report read it:
+/// its time and, when it was lost, why.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LensFrame {
+    /// Frame time on the camera clock (s).
+    pub t: f64,
+    /// The reason the frame was lost (`None`: a pose was accepted); an empty reason reads
+    /// `no reason given`.
+    pub lost: Option<String>,
+}
+
+/// Read the time, status and reason of every row of a localizer's `poses.csv` (the reason is
+/// the last column and may itself hold commas).
+pub fn read_lens_frames(path: &Path) -> Result<Vec<LensFrame>> {
+    let text = read(path)?;
+    let mut lines = text
+        .lines()
+        .enumerate()
+        .filter(|(_, l)| !l.trim().is_empty());
+    let header: Vec<&str> = lines
+        .next()
+        .map(|(_, l)| l.split(',').map(str::trim).collect())
+        .unwrap_or_default();
+    let column = |name: &str| header.iter().position(|c| *c == name);
+    let (Some(t_col), Some(status), Some(reason)) =
+        (column("t"), column("status"), column("reason"))
+    else {
+        return Err(input(
+            path,
+            format!(
+                "expected a poses.csv with t, status and reason columns (found `{}`); re-run the \
+                 localize stage",
+                header.join(",")
+            ),
+        ));
+    };
+    let mut out = Vec::new();
+    for (i, line) in lines {
+        let fields: Vec<&str> = line.splitn(header.len(), ',').collect();
+        let field = |k: usize| fields.get(k).map_or("", |f| f.trim());
+        let t: f64 = field(t_col)
+            .parse()
+            .ok()
+            .filter(|t: &f64| t.is_finite())
+            .ok_or_else(|| {
+                input(
+                    path,
+                    format!(
+                        "line {}: time `{}` is not a finite number",
+                        i + 1,
+                        field(t_col)
+                    ),
+                )
+            })?;
+        let lost = (field(status) == "lost").then(|| {
+            let why = field(reason);
+            if why.is_empty() {
+                "no reason given".to_string()
+            } else {
+                why.to_string()
+            }
+        });
+        out.push(LensFrame { t, lost });
+    }
+    Ok(out)
+}
+
 /// Read `poses.csv` (`t,status,px,py,pz,qx,qy,qz,qw,...`, status ∈ {tracked, relocalized,
 /// lost}); lost rows may leave the pose empty.
 pub fn read_localizations(path: &Path) -> Result<Vec<Localization>> {

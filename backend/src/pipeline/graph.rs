@@ -14,8 +14,12 @@
 //! `export-<format>` (a dataset of every usable episode, from the episodes' published `out/`),
 //! after every episode's `outputs`.
 //!
-//! Stages for head pose, the floor reference and the report attach after `fusion-<wrist>` /
-//! `outputs` in [`build`] (each with its own family name), in the same way.
+//! Per session, when the run covers every episode: `report` (the session's HTML report page,
+//! `report/index.html`), last, after every episode's `outputs` and every export. It reads
+//! what the stages before it left, failed ones included.
+//!
+//! Stages for head pose and the floor reference attach after `fusion-<wrist>` / `outputs` in
+//! [`build`] (each with its own family name), in the same way.
 
 use kiwi_core::layout::Side;
 
@@ -139,6 +143,9 @@ pub enum StageKind {
         /// The dataset format.
         format: ExportFormat,
     },
+    /// The session's report page (`report/index.html`): paths, support, sync, gripper,
+    /// verdicts and stage timings of every episode.
+    Report,
 }
 
 /// One node of the graph.
@@ -181,11 +188,12 @@ pub fn id_of(kind: &StageKind) -> StageId {
         }
         StageKind::Outputs { episode } => StageId::episode(episode, "outputs"),
         StageKind::Export { format } => StageId::session(format!("export-{}", format.name())),
+        StageKind::Report => StageId::session("report"),
     }
 }
 
 /// Stage families a user can name in `--from`, `--force` and `kiwi status`.
-pub const FAMILIES: [&str; 11] = [
+pub const FAMILIES: [&str; 12] = [
     "sync",
     "map",
     "tool",
@@ -197,6 +205,7 @@ pub const FAMILIES: [&str; 11] = [
     "gripper",
     "outputs",
     "export",
+    "report",
 ];
 
 /// The graph for `episodes` (the session's stages and the map episode's localizations are
@@ -369,6 +378,31 @@ pub fn build(ctx: &SessionContext, episodes: &[String]) -> Vec<StageNode> {
                 push(StageKind::Export { format }, deps.clone());
             }
         }
+    }
+    // Session: the report, last, on a run of every episode (like the exports). It reads every
+    // episode's sync, localizations and outputs, the scene map and its metric recovery, and
+    // follows the exports so that its stage timings include them.
+    if all.iter().all(|e| episodes.contains(e)) {
+        let deps: Vec<StageId> = nodes
+            .iter()
+            .filter(|n| {
+                matches!(
+                    n.kind,
+                    StageKind::Sync { .. }
+                        | StageKind::Localize { .. }
+                        | StageKind::Outputs { .. }
+                        | StageKind::Export { .. }
+                        | StageKind::Map { map: MapName::Rear }
+                        | StageKind::Metric { map: MapName::Rear }
+                )
+            })
+            .map(|n| n.id.clone())
+            .collect();
+        nodes.push(StageNode {
+            id: id_of(&StageKind::Report),
+            kind: StageKind::Report,
+            deps,
+        });
     }
     order(nodes)
 }

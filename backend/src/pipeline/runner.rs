@@ -444,8 +444,8 @@ fn execute(
     progress: &dyn Progress,
 ) -> (Decided, Outcome) {
     // An export leaves a failed episode out (its published quality.json says why) rather than
-    // fail with it.
-    let tolerates_broken = matches!(node.kind, StageKind::Export { .. });
+    // fail with it; the report shows the failure.
+    let tolerates_broken = matches!(node.kind, StageKind::Export { .. } | StageKind::Report);
     if let Some((dep, Decided::Broken(reason))) = deps
         .iter()
         .find(|(_, d)| matches!(d, Decided::Broken(_)) && !tolerates_broken)
@@ -535,11 +535,12 @@ fn execute(
 pub const EXPORTS_DIR: &str = "exports";
 
 /// Where a stage's published sub-folder goes: the outputs stage's `out/` becomes the episode's
-/// `out/`, an export stage's `out/` becomes `exports/<format>/`.
+/// `out/`, an export stage's `out/` becomes `exports/<format>/`, the report's `report/`.
 fn published_target(ctx: &SessionContext, node: &StageNode) -> Option<PathBuf> {
     match &node.kind {
         StageKind::Outputs { episode } => Some(ctx.episode(episode).root().join(PUBLISHED_DIR)),
         StageKind::Export { format } => Some(ctx.root.join(EXPORTS_DIR).join(format.name())),
+        StageKind::Report => Some(ctx.root.join(crate::report::REPORT_DIR)),
         _ => None,
     }
 }

@@ -72,6 +72,7 @@ pub fn version(kind: &StageKind) -> &'static str {
         StageKind::Gripper { .. } => "gripper-1",
         StageKind::Outputs { .. } => "outputs-1",
         StageKind::Export { .. } => "export-1",
+        StageKind::Report => "report-1",
     }
 }
 
@@ -326,6 +327,9 @@ pub fn inputs(ctx: &SessionContext, kind: &StageKind) -> Result<Vec<InputDigest>
             v
         }
         StageKind::Export { format } => export_inputs(ctx, *format)?,
+        // The episodes' names and descriptions and the wrists' tools come from session.toml;
+        // the rest is the outputs of the stages it reads.
+        StageKind::Report => vec![file_input(ctx, "session".into(), &ctx.toml)?],
     })
 }
 
@@ -469,6 +473,13 @@ pub fn run(env: &StageEnv<'_>, kind: &StageKind) -> Result<()> {
         StageKind::Gripper { episode, side } => run_gripper(env, episode, *side),
         StageKind::Outputs { episode } => run_outputs(env, episode),
         StageKind::Export { format } => run_export(env, *format),
+        StageKind::Report => {
+            crate::report::write_report(
+                env.ctx,
+                &env.out.join(PUBLISHED_DIR).join(crate::report::PAGE_FILE),
+            )?;
+            Ok(())
+        }
     }
 }
 
@@ -890,34 +901,17 @@ pub fn write_file(path: &Path, bytes: &[u8]) -> Result<()> {
 pub const PUBLISHED_DIR: &str = "out";
 
 fn localization_record(path: &Path) -> Result<crate::outputs::LocalizationRecord> {
-    let text = kiwi_core::io::read_text(path)?;
     let mut record = crate::outputs::LocalizationRecord::default();
-    let mut lines = text.lines();
-    let header: Vec<&str> = lines.next().unwrap_or_default().split(',').collect();
-    let status = header.iter().position(|c| *c == "status");
-    let reason = header.iter().position(|c| *c == "reason");
-    let (Some(status), Some(reason)) = (status, reason) else {
-        return Err(input(
-            path,
-            "expected a poses.csv with status and reason columns; re-run the localize stage".into(),
-        ));
-    };
-    for line in lines.filter(|l| !l.trim().is_empty()) {
-        // The reason is the last column and may itself contain commas.
-        let fields: Vec<&str> = line.splitn(header.len(), ',').collect();
+    for frame in crate::formats::tables::read_lens_frames(path)? {
         record.frames += 1;
-        if fields.get(status).is_some_and(|s| *s == "lost") {
-            let why = fields.get(reason).copied().unwrap_or("").trim();
-            *record
-                .lost_reasons
-                .entry(crate::quality::reason_class(if why.is_empty() {
-                    "no reason given"
-                } else {
-                    why
-                }))
-                .or_insert(0) += 1;
-        } else {
-            record.localized += 1;
+        match frame.lost {
+            Some(why) => {
+                *record
+                    .lost_reasons
+                    .entry(crate::quality::reason_class(&why))
+                    .or_insert(0) += 1;
+            }
+            None => record.localized += 1,
         }
     }
     Ok(record)
