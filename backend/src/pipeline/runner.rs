@@ -455,7 +455,10 @@ fn execute(
         } else {
             format!("needs {}, which failed: {reason}", dep.label())
         };
-        publish_failure(ctx, node, &reason);
+        // A stage this run may not execute (outside --only) keeps what it last published.
+        if runnable {
+            publish_failure(ctx, node, &reason);
+        }
         return (Decided::Broken(reason.clone()), Outcome::Blocked { reason });
     }
     let digests: BTreeMap<StageId, String> = deps
