@@ -19,7 +19,7 @@ use kiwi_core::layout::EpisodeLayout;
 use crate::error::{BackendError, Result};
 use crate::frames::FrameSource;
 use crate::pipeline::SessionContext;
-use crate::pipeline::graph::FAMILIES;
+use crate::pipeline::graph::AFTER_EPISODE_FAMILIES;
 use crate::pipeline::status::status;
 
 /// Version of `plan.json`.
@@ -47,7 +47,8 @@ const CPU_S_PER_FRAME_MEGAPIXEL: f64 = 0.06;
 /// The maps job costs this many times an episode of its size (mapping, the reversed check and
 /// the metric recovery come on top of localization): 1.7-2.0 times the walk per frame.
 const MAPS_COST_FACTOR: f64 = 2.0;
-/// Resident memory of a run before its frames' size counts (MB): 166-209 MB measured.
+/// Resident memory of a run before its frames' size counts (MB): the measured peaks'
+/// intercept at zero frame size, 166 MB (episodes) to 209 MB (maps), rounded up.
 const BASE_MEMORY_MB: f64 = 200.0;
 /// Resident memory per megapixel of one lens frame (MB) with two worker threads: the maps
 /// job's peak grew 508 MB per megapixel from 320 to 480 px (episodes: 172), rounded up.
@@ -67,12 +68,8 @@ const DATASETS_S_PER_RECORDED_S: f64 = 0.7;
 const DATASETS_MEMORY_MB: u64 = 1000;
 /// No time limit is shorter (s): start-up, reading calibrations, a queue's clock granularity.
 const MIN_TIME_LIMIT_S: f64 = 600.0;
-/// Worker threads per task: the pipeline's localization runs four streams, two at a time on
-/// two cores; more threads per episode help little, more tasks in parallel help more.
+/// Worker threads per task: the setting the cost model was measured with.
 pub const DEFAULT_CPUS: u32 = 2;
-
-/// Stage families of the session that run after every episode (the datasets job's work).
-const AFTER_EPISODES: [&str; 2] = ["export", "report"];
 
 fn batch_err(message: String) -> BackendError {
     BackendError::Batch(message)
@@ -87,6 +84,17 @@ pub struct Resources {
     pub memory_mb: u64,
     /// Time limit (s, `--time`).
     pub time_limit_s: u64,
+}
+
+impl Resources {
+    /// Enough for either run.
+    pub fn max(&self, other: &Resources) -> Resources {
+        Resources {
+            cpus: self.cpus.max(other.cpus),
+            memory_mb: self.memory_mb.max(other.memory_mb),
+            time_limit_s: self.time_limit_s.max(other.time_limit_s),
+        }
+    }
 }
 
 /// One job of the plan: a run of one episode (or of the whole session for the datasets).
@@ -122,14 +130,36 @@ pub struct Plan {
     pub finish: Option<PlannedRun>,
 }
 
-/// Lens frames and their pixels of an episode's wrist streams.
-fn episode_size(ctx: &SessionContext, episode: &str) -> Result<(f64, usize, f64)> {
+/// Resources for a run over `frames` lens frames of `frame_megapixels` each.
+fn resources(frames: usize, frame_megapixels: f64, cost_factor: f64, cpus: u32) -> Resources {
+    let per_frame = CPU_S_PER_FRAME + CPU_S_PER_FRAME_MEGAPIXEL * frame_megapixels;
+    let cpu_s = frames as f64 * per_frame * cost_factor;
+    let threads = f64::from(cpus.max(1)) / 2.0;
+    let memory = (BASE_MEMORY_MB
+        + MEMORY_MB_PER_FRAME_MEGAPIXEL * frame_megapixels * threads.max(1.0))
+        * MEMORY_SAFETY;
+    Resources {
+        cpus,
+        memory_mb: memory.ceil() as u64,
+        time_limit_s: time_limit(cpu_s / f64::from(cpus.max(1))),
+    }
+}
+
+/// A time limit for a run estimated at `wall_s`: with the margin, at least the floor, in whole
+/// minutes.
+fn time_limit(wall_s: f64) -> u64 {
+    let limit = (wall_s * TIME_SAFETY).max(MIN_TIME_LIMIT_S);
+    (limit / 60.0).ceil() as u64 * 60
+}
+
+/// An episode's run: its wrist streams' length, lens frames and their pixels, and what that
+/// asks of the scheduler (`cost_factor` times an episode's cost per frame).
+fn planned(ctx: &SessionContext, episode: &str, cost_factor: f64, cpus: u32) -> Result<PlannedRun> {
     let layout = EpisodeLayout::new(ctx.session.episode_dir(&ctx.root, episode));
-    let (mut duration, mut frames, mut megapixels) = (0.0f64, 0usize, 0.0f64);
+    let (mut duration_s, mut frames, mut megapixels) = (0.0f64, 0usize, 0.0f64);
     for wrist in ctx.wrists.values() {
         for lens in ["front", "rear"] {
-            let dir = layout.lens_dir(wrist.camera, lens);
-            let source = FrameSource::open(&dir)?;
+            let source = FrameSource::open(&layout.lens_dir(wrist.camera, lens))?;
             // The lens' calibrated image size (the pipeline holds frames to it): a plan must not
             // depend on the first frame being readable — a corrupt one is the task's error.
             let (w, h) = match wrist.calibration.lenses.iter().find(|l| l.name == lens) {
@@ -138,34 +168,13 @@ fn episode_size(ctx: &SessionContext, episode: &str) -> Result<(f64, usize, f64)
             };
             let records = source.frames();
             if let (Some(a), Some(b)) = (records.first(), records.last()) {
-                duration = duration.max(b.t - a.t);
+                duration_s = duration_s.max(b.t - a.t);
             }
             frames += records.len();
             megapixels += records.len() as f64 * f64::from(w) * f64::from(h) / 1e6;
         }
     }
-    Ok((duration, frames, megapixels))
-}
-
-/// Resources for a run over `frames` lens frames of `frame_megapixels` each.
-fn resources(frames: usize, frame_megapixels: f64, cost_factor: f64, cpus: u32) -> Resources {
-    let per_frame = CPU_S_PER_FRAME + CPU_S_PER_FRAME_MEGAPIXEL * frame_megapixels;
-    let cpu_s = frames as f64 * per_frame * cost_factor;
-    let wall = (cpu_s / f64::from(cpus.max(1)) * TIME_SAFETY).max(MIN_TIME_LIMIT_S);
-    let threads = f64::from(cpus.max(1)) / 2.0;
-    let memory = (BASE_MEMORY_MB
-        + MEMORY_MB_PER_FRAME_MEGAPIXEL * frame_megapixels * threads.max(1.0))
-        * MEMORY_SAFETY;
-    Resources {
-        cpus,
-        memory_mb: memory.ceil() as u64,
-        time_limit_s: (wall / 60.0).ceil() as u64 * 60,
-    }
-}
-
-fn planned(ctx: &SessionContext, episode: &str, cost_factor: f64, cpus: u32) -> Result<PlannedRun> {
-    let (duration_s, frames, megapixels) = episode_size(ctx, episode)?;
-    let frame_mp = if frames > 0 {
+    let frame_megapixels = if frames > 0 {
         megapixels / frames as f64
     } else {
         0.0
@@ -175,7 +184,17 @@ fn planned(ctx: &SessionContext, episode: &str, cost_factor: f64, cpus: u32) -> 
         duration_s,
         frames,
         megapixels,
-        resources: resources(frames, frame_mp, cost_factor, cpus),
+        resources: resources(frames, frame_megapixels, cost_factor, cpus),
+    })
+}
+
+/// `path` made absolute (the plan runs on other machines, from other folders).
+fn absolute(path: &Path) -> Result<PathBuf> {
+    std::path::absolute(path).map_err(|e| {
+        batch_err(format!(
+            "{}: cannot make the path absolute ({e})",
+            path.display()
+        ))
     })
 }
 
@@ -187,12 +206,7 @@ pub fn plan(
     kiwi: &Path,
     cpus: u32,
 ) -> Result<Plan> {
-    let session = std::path::absolute(session_toml).map_err(|e| {
-        batch_err(format!(
-            "{}: cannot make the path absolute ({e})",
-            session_toml.display()
-        ))
-    })?;
+    let session = absolute(session_toml)?;
     let ctx = SessionContext::load(&session)?;
     let map_episode = ctx.session.map_episode.clone();
     let selected = crate::pipeline::runner::selected_episodes(&ctx, episodes)?;
@@ -220,23 +234,13 @@ pub fn plan(
         resources: Resources {
             cpus,
             memory_mb: DATASETS_MEMORY_MB,
-            time_limit_s: ((recorded * DATASETS_S_PER_RECORDED_S * TIME_SAFETY)
-                .max(MIN_TIME_LIMIT_S)
-                / 60.0)
-                .ceil() as u64
-                * 60,
+            time_limit_s: time_limit(recorded * DATASETS_S_PER_RECORDED_S),
         },
     });
-    let kiwi = std::path::absolute(kiwi).map_err(|e| {
-        batch_err(format!(
-            "{}: cannot make the path absolute ({e})",
-            kiwi.display()
-        ))
-    })?;
     Ok(Plan {
         schema_version: PLAN_SCHEMA_VERSION,
         session,
-        kiwi,
+        kiwi: absolute(kiwi)?,
         maps,
         episodes: tasks,
         finish,
@@ -351,85 +355,64 @@ fn run_body(plan: &Plan, args: &str) -> String {
 /// The scripts of a plan, by file name.
 pub fn slurm_scripts(plan: &Plan, dir: &Path, opts: &SlurmOptions) -> BTreeMap<String, String> {
     let logs = dir.join(LOGS_DIR);
+    let script = |name: &str, log: &str, r: &Resources, prologue: &str, args: String| {
+        let log = logs.join(log).display().to_string();
+        format!(
+            "{}{prologue}{}",
+            header(name, r, opts, &log),
+            run_body(plan, &format!("{args} --threads {}", r.cpus))
+        )
+    };
     let mut out = BTreeMap::new();
     let maps = &plan.maps;
-    let mut s = header(
-        "kiwi-maps",
-        &maps.resources,
-        opts,
-        &logs.join("maps-%j.out").display().to_string(),
-    );
-    s.push_str(&run_body(
-        plan,
-        &format!(
-            "--episodes {} --threads {}",
-            maps.episode.as_deref().unwrap_or(""),
-            maps.resources.cpus
+    out.insert(
+        "maps.sbatch".into(),
+        script(
+            "kiwi-maps",
+            "maps-%j.out",
+            &maps.resources,
+            "",
+            format!("--episodes {}", maps.episode.as_deref().unwrap_or("")),
         ),
-    ));
-    out.insert("maps.sbatch".into(), s);
-
-    if !plan.episodes.is_empty() {
-        // One request for every task of the array: the largest episode's.
-        let r = Resources {
-            cpus: plan
-                .episodes
+    );
+    // One request for every task of the array: the largest episode's.
+    if let Some(r) = plan
+        .episodes
+        .iter()
+        .map(|t| t.resources.clone())
+        .reduce(|a, b| a.max(&b))
+    {
+        let prologue = format!(
+            "EPISODES=({} )\nEPISODE=\"${{EPISODES[$SLURM_ARRAY_TASK_ID]}}\"\n",
+            plan.task_episodes()
                 .iter()
-                .map(|t| t.resources.cpus)
-                .max()
-                .unwrap_or(DEFAULT_CPUS),
-            memory_mb: plan
-                .episodes
-                .iter()
-                .map(|t| t.resources.memory_mb)
-                .max()
-                .unwrap_or(0),
-            time_limit_s: plan
-                .episodes
-                .iter()
-                .map(|t| t.resources.time_limit_s)
-                .max()
-                .unwrap_or(0),
-        };
-        let mut s = header(
-            "kiwi-episodes",
-            &r,
-            opts,
-            &logs.join("episode-%A_%a.out").display().to_string(),
+                .map(|e| format!(" {e}"))
+                .collect::<String>()
         );
-        s.push_str("EPISODES=(");
-        for e in plan.task_episodes() {
-            s.push_str(&format!(" {e}"));
-        }
-        s.push_str(" )\nEPISODE=\"${EPISODES[$SLURM_ARRAY_TASK_ID]}\"\n");
-        s.push_str(&run_body(
-            plan,
-            &format!("--episodes \"$EPISODE\" --threads {}", r.cpus),
-        ));
-        out.insert("episodes.sbatch".into(), s);
+        out.insert(
+            "episodes.sbatch".into(),
+            script(
+                "kiwi-episodes",
+                "episode-%A_%a.out",
+                &r,
+                &prologue,
+                "--episodes \"$EPISODE\"".into(),
+            ),
+        );
     }
     if let Some(f) = &plan.finish {
-        let mut s = header(
-            "kiwi-datasets",
-            &f.resources,
-            opts,
-            &logs.join("datasets-%j.out").display().to_string(),
-        );
         // Only the stages after the episodes: a failed or cancelled episode stays as its task
         // left it (its datasets leave it out, naming why) until it is resubmitted.
-        let families: Vec<&str> = AFTER_EPISODES
-            .into_iter()
-            .filter(|f| FAMILIES.contains(f))
-            .collect();
-        s.push_str(&run_body(
-            plan,
-            &format!(
-                "--only {} --threads {}",
-                families.join(","),
-                f.resources.cpus
+        out.insert(
+            "datasets.sbatch".into(),
+            script(
+                "kiwi-datasets",
+                "datasets-%j.out",
+                &f.resources,
+                "",
+                format!("--only {}", AFTER_EPISODE_FAMILIES.join(",")),
             ),
-        ));
-        out.insert("datasets.sbatch".into(), s);
+        );
     }
     out
 }
@@ -540,9 +523,8 @@ fn sbatch(script: &Path, extra: &[String]) -> Result<String> {
     Ok(id)
 }
 
-/// Submit the plan's scripts (written by [`write_slurm_scripts`]): the maps job unless its
-/// episode is done, then the tasks of `episodes` as one array that depends on it, then the
-/// datasets job after the array. Records the ids in `jobs.json` and returns the submission.
+/// Write the plan's scripts and submit them: the maps job when `with_maps`, then the tasks of
+/// `episodes` as one array that depends on it, then the datasets job after the array. Records the ids in `jobs.json` and returns the submission.
 pub fn submit(
     plan: &Plan,
     dir: &Path,
@@ -588,17 +570,18 @@ pub fn submit(
         }
         Some(sbatch(&script("episodes.sbatch")?, &extra)?)
     };
-    let datasets = match (&plan.finish, &array, &maps) {
-        (None, ..) => None,
-        (Some(_), Some(a), _) => Some(sbatch(
-            &script("datasets.sbatch")?,
-            &[format!("--dependency=afterany:{a}")],
-        )?),
-        (Some(_), None, Some(m)) => Some(sbatch(
-            &script("datasets.sbatch")?,
-            &[format!("--dependency=afterany:{m}")],
-        )?),
-        (Some(_), None, None) => Some(sbatch(&script("datasets.sbatch")?, &[])?),
+    // The datasets follow whatever this submission runs.
+    let datasets = match &plan.finish {
+        None => None,
+        Some(_) => {
+            let after: Vec<String> = array
+                .as_ref()
+                .or(maps.as_ref())
+                .map(|j| format!("--dependency=afterany:{j}"))
+                .into_iter()
+                .collect();
+            Some(sbatch(&script("datasets.sbatch")?, &after)?)
+        }
     };
     let submission = Submission {
         maps,
@@ -714,7 +697,7 @@ pub fn episode_states(plan: &Plan, dir: &Path, with_queue: bool) -> Result<Vec<E
                 r.scope == name
                     || (owns_session
                         && r.scope == "session"
-                        && !AFTER_EPISODES.contains(&r.stage.split('-').next().unwrap_or("")))
+                        && !AFTER_EPISODE_FAMILIES.contains(&r.stage.split('-').next().unwrap_or("")))
             })
             .collect();
         let failed = own

@@ -135,18 +135,15 @@ fn carried_files(dir: &Path) -> Vec<PathBuf> {
     })
 }
 
-/// Stage families whose folders the sidecar leaves out: they come after the episodes (other
-/// exports of the same run, which may or may not have finished before this one).
-const AFTER_EPISODE_FAMILIES: [&str; 2] = ["export", "report"];
-
 /// The pipeline's stage folders under a `work/` folder (no temporary or old folders of an
-/// interrupted run, no exports).
+/// interrupted run, none of the stages after the episodes: another export of the same run may
+/// or may not have finished before this one).
 fn stage_dirs(work: &Path) -> Vec<PathBuf> {
     sorted_entries(work, |p| {
         p.is_dir()
             && p.file_name().and_then(|n| n.to_str()).is_some_and(|n| {
                 !n.starts_with('.')
-                    && !AFTER_EPISODE_FAMILIES.contains(&n.split('-').next().unwrap_or(n))
+                    && !crate::pipeline::graph::AFTER_EPISODE_FAMILIES.contains(&n.split('-').next().unwrap_or(n))
             })
     })
 }

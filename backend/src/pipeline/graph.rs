@@ -208,6 +208,11 @@ pub const FAMILIES: [&str; 12] = [
     "report",
 ];
 
+/// The session's stage families that run after every episode's outputs (datasets, the
+/// report): their folders are not pipeline results, and a run of them alone (`--only`) is
+/// what follows a cluster's episode tasks.
+pub const AFTER_EPISODE_FAMILIES: [&str; 2] = ["export", "report"];
+
 /// The graph for `episodes` (the session's stages and the map episode's localizations are
 /// always included: every episode needs them), in an order where every stage follows its
 /// dependencies.
