@@ -595,22 +595,46 @@ pub fn submit(
     Ok(submission)
 }
 
+/// How far an episode's stages are.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+pub enum Progress {
+    /// Every stage current.
+    #[serde(rename = "done")]
+    Done,
+    /// A stage failed (or is blocked by one that failed).
+    #[serde(rename = "failed")]
+    Failed,
+    /// Some stage has not run or is stale.
+    #[serde(rename = "not run")]
+    NotRun,
+}
+
+impl Progress {
+    /// `done`, `failed` or `not run`.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Done => "done",
+            Self::Failed => "failed",
+            Self::NotRun => "not run",
+        }
+    }
+}
+
 /// Where an episode stands.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct EpisodeState {
     /// The episode.
     pub episode: String,
-    /// `done` (every stage current), `failed` (a stage failed), `not run` (some stage has not
-    /// run or is stale).
-    pub state: String,
+    /// How far its stages are.
+    pub state: Progress,
     /// Its verdict when done (`usable`, `suspect`, `unusable`).
     pub verdict: Option<String>,
     /// The failure (stage and reason) or what is missing.
     pub detail: String,
-    /// Its latest job as the scheduler names it, and the job's queue state (`PENDING`,
-    /// `RUNNING`, …; `None` when it has left the queue).
+    /// Its latest job as the scheduler names it (`<array>_<index>` for a task).
     pub job: Option<String>,
-    /// The queue state of that job.
+    /// That job's queue state (`PENDING (Dependency)`, `RUNNING`, …; `None` when it has left
+    /// the queue).
     pub queue: Option<String>,
 }
 
@@ -697,7 +721,8 @@ pub fn episode_states(plan: &Plan, dir: &Path, with_queue: bool) -> Result<Vec<E
                 r.scope == name
                     || (owns_session
                         && r.scope == "session"
-                        && !AFTER_EPISODE_FAMILIES.contains(&r.stage.split('-').next().unwrap_or("")))
+                        && !AFTER_EPISODE_FAMILIES
+                            .contains(&r.stage.split('-').next().unwrap_or("")))
             })
             .collect();
         let failed = own
@@ -707,27 +732,27 @@ pub fn episode_states(plan: &Plan, dir: &Path, with_queue: bool) -> Result<Vec<E
             .iter()
             .find(|r| r.state == "not run" || r.state == "stale");
         let (state, detail) = match (failed, missing) {
-            (Some(f), _) => ("failed", format!("{}: {}", f.stage, f.detail)),
-            (None, Some(m)) => ("not run", format!("{} is {}", m.stage, m.state)),
-            (None, None) => ("done", String::new()),
+            (Some(f), _) => (Progress::Failed, format!("{}: {}", f.stage, f.detail)),
+            (None, Some(m)) => (Progress::NotRun, format!("{} is {}", m.stage, m.state)),
+            (None, None) => (Progress::Done, String::new()),
         };
-        let verdict = (state == "done")
-            .then(|| {
-                let q = ctx
-                    .session
-                    .episode_dir(&ctx.root, &name)
-                    .join("out")
-                    .join("quality.json");
-                crate::outputs::read_quality(&q)
-                    .ok()
-                    .map(|q| q.verdict.as_str().to_string())
-            })
-            .flatten();
+        let verdict = if state == Progress::Done {
+            let q = ctx
+                .session
+                .episode_dir(&ctx.root, &name)
+                .join("out")
+                .join("quality.json");
+            crate::outputs::read_quality(&q)
+                .ok()
+                .map(|q| q.verdict.as_str().to_string())
+        } else {
+            None
+        };
         let job = jobs.latest_job_of(&name, plan);
         let queued = job.as_ref().and_then(|j| queue.get(j).cloned());
         out.push(EpisodeState {
             episode: name,
-            state: state.into(),
+            state,
             verdict,
             detail,
             job,
@@ -741,7 +766,7 @@ pub fn episode_states(plan: &Plan, dir: &Path, with_queue: bool) -> Result<Vec<E
 pub fn to_resubmit(states: &[EpisodeState]) -> Vec<String> {
     states
         .iter()
-        .filter(|s| s.state != "done" && s.queue.is_none())
+        .filter(|s| s.state != Progress::Done && s.queue.is_none())
         .map(|s| s.episode.clone())
         .collect()
 }
@@ -777,19 +802,19 @@ mod tests {
 
     #[test]
     fn resubmission_skips_done_and_queued_episodes() {
-        let s = |e: &str, state: &str, queue: Option<&str>| EpisodeState {
+        let s = |e: &str, state: Progress, queue: Option<&str>| EpisodeState {
             episode: e.into(),
-            state: state.into(),
+            state,
             verdict: None,
             detail: String::new(),
             job: None,
             queue: queue.map(str::to_string),
         };
         let states = [
-            s("a", "done", None),
-            s("b", "failed", None),
-            s("c", "not run", Some("RUNNING")),
-            s("d", "not run", None),
+            s("a", Progress::Done, None),
+            s("b", Progress::Failed, None),
+            s("c", Progress::NotRun, Some("RUNNING")),
+            s("d", Progress::NotRun, None),
         ];
         assert_eq!(to_resubmit(&states), vec!["b".to_string(), "d".to_string()]);
     }

@@ -14,8 +14,9 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use kiwi_fixtures::scenario::Scenario;
-use kiwi_fixtures::session::{SessionOptions, write_session};
+#[path = "support/pipeline_sessions.rs"]
+mod sessions;
+use sessions::{copy_inputs, files, localizing, small_session};
 
 const KIWI: &str = env!("CARGO_BIN_EXE_kiwi");
 /// Longest the cluster may take to come up (s).
@@ -206,19 +207,10 @@ impl Cluster {
     }
 }
 
+/// Four episodes (a survey that builds the maps, three short tabletop ones), one of them with
+/// a corrupt stream: one frame of a lens is not an image.
 fn session(dir: &Path) -> PathBuf {
-    let mut o = SessionOptions::new(dir);
-    o.seed = 5;
-    o.resolution = 320;
-    o.rate_hz = 29.97;
-    o.episodes = 4;
-    o.scenario = Scenario::Survey;
-    o.episode_scenarios = vec![Scenario::Survey, Scenario::Tabletop];
-    o.episode_durations = vec![10.0, 2.0];
-    o.duration_s = 10.0;
-    o.head = false;
-    let toml = write_session(&o).unwrap().session_toml;
-    // A corrupt stream: one frame of a lens is not an image.
+    let toml = small_session(dir, 4);
     let frames = dir.join("episodes").join(CORRUPT).join("left/front/frames");
     let first = std::fs::read_dir(&frames)
         .unwrap()
@@ -230,51 +222,24 @@ fn session(dir: &Path) -> PathBuf {
     toml
 }
 
-fn copy_tree(from: &Path, to: &Path) {
-    std::fs::create_dir_all(to).unwrap();
-    for e in std::fs::read_dir(from).unwrap().flatten() {
-        let (src, dst) = (e.path(), to.join(e.file_name()));
-        if src.is_dir() {
-            copy_tree(&src, &dst);
-        } else {
-            std::fs::copy(&src, &dst).unwrap();
-        }
-    }
-}
-
-/// Every result file of a session (relative path → bytes, the session's own path in text files
-/// replaced by `SESSION`), manifests and batch files left out (they hold wall times and job
-/// ids).
+/// Every result file of a session (stage folders and episode outputs; relative path → bytes,
+/// the session's own path in text files replaced by `SESSION`), manifests left out (they hold
+/// wall times).
 fn results(root: &Path) -> Vec<(String, Vec<u8>)> {
-    fn walk(base: &Path, dir: &Path, out: &mut Vec<(String, Vec<u8>)>) {
-        let Ok(entries) = std::fs::read_dir(dir) else {
-            return;
-        };
-        for e in entries.flatten() {
-            let p = e.path();
-            let rel = p.strip_prefix(base).unwrap().to_string_lossy().into_owned();
-            if rel == "batch" {
-                continue;
-            }
-            if p.is_dir() {
-                walk(base, &p, out);
-            } else if p.file_name().is_some_and(|n| n != "manifest.json")
-                && (rel.contains("/work/") || rel.starts_with("work/") || rel.contains("/out/"))
-            {
-                // A failed episode's record names its files by path: compare them relative.
-                let bytes = std::fs::read(&p).unwrap();
-                let bytes = match String::from_utf8(bytes) {
-                    Ok(text) => text.replace(base.to_str().unwrap(), "SESSION").into_bytes(),
-                    Err(e) => e.into_bytes(),
-                };
-                out.push((rel, bytes));
-            }
-        }
-    }
-    let mut out = Vec::new();
-    walk(root, root, &mut out);
-    out.sort_by(|a, b| a.0.cmp(&b.0));
-    out
+    files(root)
+        .into_iter()
+        .filter(|(rel, _)| {
+            rel.starts_with("work/") || rel.contains("/work/") || rel.contains("/out/")
+        })
+        .map(|(rel, bytes)| {
+            // A failed episode's record names its files by path: compare them relative.
+            let bytes = match String::from_utf8(bytes) {
+                Ok(text) => text.replace(root.to_str().unwrap(), "SESSION").into_bytes(),
+                Err(e) => e.into_bytes(),
+            };
+            (rel, bytes)
+        })
+        .collect()
 }
 
 fn kiwi(cluster: &Cluster, args: &[&str]) -> (bool, String, String) {
@@ -333,7 +298,7 @@ fn a_plan_runs_on_slurm_resumes_a_cancelled_task_and_matches_a_local_run() {
     let tmp = tempfile::tempdir().unwrap();
     let local = session(&tmp.path().join("local"));
     let cluster_root = tmp.path().join("cluster");
-    copy_tree(local.parent().unwrap(), &cluster_root);
+    copy_inputs(local.parent().unwrap(), &cluster_root);
     let toml = cluster_root.join("session.toml");
     let cluster = Cluster::start(&tmp.path().join("slurm"));
 
@@ -375,15 +340,8 @@ fn a_plan_runs_on_slurm_resumes_a_cancelled_task_and_matches_a_local_run() {
         .spawn()
         .unwrap();
 
-    let work = cluster_root.join("episodes").join(CANCELLED).join("work");
     let start = Instant::now();
-    let localizing = || {
-        std::fs::read_dir(&work).is_ok_and(|d| {
-            d.flatten()
-                .any(|e| e.file_name().to_string_lossy().starts_with(".tmp-localize"))
-        })
-    };
-    while !localizing() {
+    while !localizing(&cluster_root, CANCELLED) {
         assert!(
             start.elapsed() < JOBS_END,
             "{CANCELLED} never localized:\n{}",

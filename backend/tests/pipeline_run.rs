@@ -13,33 +13,11 @@ use kiwi_fixtures::session::{SessionOptions, write_session};
 
 #[path = "support/pipeline_sessions.rs"]
 mod sessions;
-use sessions::{small_session, unmappable_session};
+use sessions::{copy_inputs, files, localizing, small_session, unmappable_session};
 
 const KIWI: &str = env!("CARGO_BIN_EXE_kiwi");
 /// Longest the killed run may take to reach localization before the test gives up.
 const REACH_LOCALIZE: Duration = Duration::from_secs(600);
-
-/// Every file under `dir` (relative path → bytes), manifests left out (they hold wall times).
-fn files(dir: &Path) -> Vec<(String, Vec<u8>)> {
-    fn walk(base: &Path, dir: &Path, out: &mut Vec<(String, Vec<u8>)>) {
-        let Ok(entries) = std::fs::read_dir(dir) else {
-            return;
-        };
-        for e in entries.flatten() {
-            let p = e.path();
-            if p.is_dir() {
-                walk(base, &p, out);
-            } else if p.file_name().is_some_and(|n| n != "manifest.json") {
-                let rel = p.strip_prefix(base).unwrap().to_string_lossy().into_owned();
-                out.push((rel, std::fs::read(&p).unwrap()));
-            }
-        }
-    }
-    let mut out = Vec::new();
-    walk(dir, dir, &mut out);
-    out.sort_by(|a, b| a.0.cmp(&b.0));
-    out
-}
 
 /// What the pipeline wrote: every stage folder and every episode's `out/`.
 fn results(session: &Path) -> Vec<(String, Vec<u8>)> {
@@ -74,31 +52,10 @@ fn results(session: &Path) -> Vec<(String, Vec<u8>)> {
     all
 }
 
-fn copy_inputs(from: &Path, to: &Path) {
-    std::fs::create_dir_all(to).unwrap();
-    for e in std::fs::read_dir(from).unwrap().flatten() {
-        let (src, dst) = (e.path(), to.join(e.file_name()));
-        if src.is_dir() {
-            copy_inputs(&src, &dst);
-        } else {
-            std::fs::hard_link(&src, &dst).unwrap();
-        }
-    }
-}
-
-fn localization_started(session: &Path) -> bool {
-    ["ep000", "ep001"].iter().any(|ep| {
-        std::fs::read_dir(session.join("episodes").join(ep).join("work")).is_ok_and(|d| {
-            d.flatten()
-                .any(|e| e.file_name().to_string_lossy().starts_with(".tmp-localize"))
-        })
-    })
-}
-
 #[test]
 fn a_killed_run_resumes_to_byte_identical_results() {
     let tmp = tempfile::tempdir().unwrap();
-    let a = small_session(&tmp.path().join("a"), Vec::new());
+    let a = small_session(&tmp.path().join("a"), 2);
     // With the datasets on: their stages run last, and resume like the others.
     let mut text = std::fs::read_to_string(&a).unwrap();
     text.push_str("\n[export]\nformats = [\"lerobot\", \"sidecar\"]\n");
@@ -153,7 +110,7 @@ fn a_killed_run_resumes_to_byte_identical_results() {
         .spawn()
         .unwrap();
     let start = Instant::now();
-    while !localization_started(&b_dir) {
+    while !["ep000", "ep001"].iter().any(|ep| localizing(&b_dir, ep)) {
         assert!(
             start.elapsed() < REACH_LOCALIZE,
             "never reached localization"

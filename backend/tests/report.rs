@@ -186,7 +186,7 @@ fn run_json(toml: &Path) -> (Option<i32>, serde_json::Value) {
 fn the_run_ends_with_a_report_page_that_renders_in_chromium() {
     let tmp = tempfile::tempdir().unwrap();
     let started = Instant::now();
-    let toml = sessions::small_session(&tmp.path().join("s"), Vec::new());
+    let toml = sessions::small_session(&tmp.path().join("s"), 2);
     println!(
         "session recorded in {:.1} s",
         started.elapsed().as_secs_f64()

@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use anyhow::{Result, bail};
 
 use kiwi_backend::batch::{
-    DEFAULT_CPUS, Plan, SlurmOptions, episode_states, plan, submit, to_resubmit,
+    DEFAULT_CPUS, Plan, Progress, SlurmOptions, episode_states, plan, submit, to_resubmit,
     write_slurm_scripts,
 };
 
@@ -193,13 +193,20 @@ pub fn run_batch_cmd(command: BatchCommand) -> Result<()> {
                     _ => "not submitted".into(),
                 };
                 let verdict = s.verdict.as_deref().unwrap_or("");
-                println!("{:<12} {:<8} {verdict:<9} {queue}", s.episode, s.state);
+                println!(
+                    "{:<12} {:<8} {verdict:<9} {queue}",
+                    s.episode,
+                    s.state.as_str()
+                );
                 if !s.detail.is_empty() {
                     println!("{:<12}   {}", "", s.detail);
                 }
             }
-            let done = states.iter().filter(|s| s.state == "done").count();
-            let failed = states.iter().filter(|s| s.state == "failed").count();
+            let done = states.iter().filter(|s| s.state == Progress::Done).count();
+            let failed = states
+                .iter()
+                .filter(|s| s.state == Progress::Failed)
+                .count();
             println!("{done} of {} episodes done, {failed} failed", states.len());
         }
         BatchCommand::Resubmit(a) => {

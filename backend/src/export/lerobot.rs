@@ -169,8 +169,7 @@ pub fn write(exp: &SessionExport, options: &ExportOptions, dir: &Path) -> Result
 
         let (chunk, file) = (ep_index / CHUNKS_SIZE, ep_index % CHUNKS_SIZE);
         let mut table = Table::default();
-        let mut ep_stats: BTreeMap<String, Stats> = BTreeMap::new();
-        let stats = &mut ep_stats;
+        let mut stats: BTreeMap<String, Stats> = BTreeMap::new();
         for k in 0..n {
             let st = &rows.state[k * width..(k + 1) * width];
             let ac = &rows.action[k * width..(k + 1) * width];
@@ -238,7 +237,7 @@ pub fn write(exp: &SessionExport, options: &ExportOptions, dir: &Path) -> Result
 
         let mut videos = Vec::new();
         let sampled = image_sample_rows(n);
-        let mut summaries: BTreeMap<String, Summary> = ep_stats
+        let mut summaries: BTreeMap<String, Summary> = stats
             .iter()
             .map(|(k, s)| (k.clone(), s.summary()))
             .collect();
@@ -261,7 +260,7 @@ pub fn write(exp: &SessionExport, options: &ExportOptions, dir: &Path) -> Result
             video_info.insert(key.clone(), size);
             videos.push(key);
         }
-        for (key, s) in ep_stats {
+        for (key, s) in stats {
             stats_all.entry(key).or_default().merge(&s);
         }
         tracing::info!(

@@ -123,18 +123,15 @@ impl ImageStats {
         } else {
             (w.max(h) / THIN_TARGET_PX).max(1)
         };
-        let mut channels = Stats::default();
-        let mut rgb = [0.0f64; 3];
-        for y in (0..h).step_by(step) {
-            let row = &image.bgr[y * w * 3..(y + 1) * w * 3];
+        if w == 0 {
+            return;
+        }
+        for row in image.bgr.chunks_exact(w * 3).take(h).step_by(step) {
             for px in row.chunks_exact(3).step_by(step) {
-                rgb[0] = f64::from(px[2]);
-                rgb[1] = f64::from(px[1]);
-                rgb[2] = f64::from(px[0]);
-                channels.add(&rgb);
+                self.pixels
+                    .add(&[f64::from(px[2]), f64::from(px[1]), f64::from(px[0])]);
             }
         }
-        self.pixels.merge(&channels);
         self.images += 1;
     }
 
