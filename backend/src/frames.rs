@@ -68,6 +68,15 @@ impl ColorImage {
             .collect();
         GrayImage::new(self.width as u32, self.height as u32, data)
     }
+
+    /// The pixels red first (`width · height · 3` bytes), as image files and datasets store
+    /// them.
+    pub fn to_rgb(&self) -> Vec<u8> {
+        self.bgr
+            .chunks_exact(3)
+            .flat_map(|p| [p[2], p[1], p[0]])
+            .collect()
+    }
 }
 
 impl FrameSource {

@@ -5,7 +5,8 @@
 //! nerfstudio `transforms.json` (nerfstudio, brush).
 //!
 //! Poses: a front image is posed by the outputs' `scene_from_front_cam` at its frame time (the
-//! outputs pair each front frame's timestamp with the fused pose at its exposure centre); any
+//! outputs pair each front frame's timestamp, its first row's exposure, with the fused pose at
+//! that time); any
 //! other lens of the unit by the same trajectory at its own frame time shifted by the lenses'
 //! time-shift difference, composed with `front_from_lens = front_from_imu · lens_from_imu⁻¹`.
 //! Lenses of one unit exposed together are one rig frame, so front and rear stay one rigid body.
@@ -33,7 +34,7 @@ use super::{
 };
 use crate::error::{BackendError, Result};
 use crate::formats::results::{read_metric, read_placement};
-use crate::outputs::{SupportClass, session_time};
+use crate::outputs::SupportClass;
 use crate::pipeline::graph::{MapName, StageKind, id_of};
 use crate::vision::align::Sim3;
 use crate::vision::map::VisualMap;
@@ -149,17 +150,15 @@ fn refit_kb4(ds: &DoubleSphere, max_theta: f64) -> std::result::Result<(Kb4, Ref
     let mut samples = Vec::with_capacity(REFIT_SAMPLES);
     for i in 1..=REFIT_SAMPLES {
         let theta = max_theta * i as f64 / REFIT_SAMPLES as f64;
-        if let Some(px) = ds.project(&bearing_from_angles(theta, 0.0)) {
-            samples.push((theta, (px.x - cx) / fx));
-        }
-    }
-    if samples.len() < REFIT_SAMPLES / 2 {
-        return Err(format!(
-            "the Double Sphere lens projects only {} of {REFIT_SAMPLES} directions of its valid \
-             field (±{:.1}°); check valid_fov_rad in its calibration",
-            samples.len(),
-            max_theta.to_degrees()
-        ));
+        let Some(px) = ds.project(&bearing_from_angles(theta, 0.0)) else {
+            return Err(format!(
+                "the Double Sphere lens does not project the direction {:.1}° off its axis, \
+                 inside its valid field (±{:.1}°); check valid_fov_rad in its calibration",
+                theta.to_degrees(),
+                max_theta.to_degrees()
+            ));
+        };
+        samples.push((theta, (px.x - cx) / fx));
     }
     let a = DMatrix::from_fn(samples.len(), 5, |r, c| samples[r].0.powi(2 * c as i32 + 1));
     let b = DVector::from_iterator(samples.len(), samples.iter().map(|s| s.1));
@@ -187,18 +186,17 @@ fn refit_kb4(ds: &DoubleSphere, max_theta: f64) -> std::result::Result<(Kb4, Ref
         ],
     )
     .map_err(|e| format!("the KB4 refit of a Double Sphere lens is not a valid lens: {e}"))?;
+    // Both models are radial in normalized coordinates: one azimuth measures every one.
     let (mut worst, mut sum2, mut n) = (0.0f64, 0.0, 0usize);
     for &(theta, _) in &samples {
-        for phi in [0.0, std::f64::consts::FRAC_PI_2] {
-            let d = bearing_from_angles(theta, phi);
-            let err = match (ds.project(&d), kb4.project(&d)) {
-                (Some(a), Some(b)) => (a - b).norm(),
-                _ => f64::INFINITY,
-            };
-            worst = worst.max(err);
-            sum2 += err * err;
-            n += 1;
-        }
+        let d = bearing_from_angles(theta, 0.0);
+        let err = match (ds.project(&d), kb4.project(&d)) {
+            (Some(a), Some(b)) => (a - b).norm(),
+            _ => f64::INFINITY,
+        };
+        worst = worst.max(err);
+        sum2 += err * err;
+        n += 1;
     }
     Ok((
         kb4,
@@ -216,6 +214,8 @@ struct Lens {
     side: Side,
     camera_id: u32,
     model: Camera,
+    /// The unit's `calibration.json` (named when a stream does not fit it).
+    calibration_path: std::path::PathBuf,
     fisheye: FisheyeCamera,
     /// `front_from_lens` (identity for the front lens).
     front_from_lens: Pose,
@@ -443,6 +443,7 @@ fn open_lenses(exp: &SessionExport, views: &[View]) -> Result<Vec<Lens>> {
                 side: *side,
                 camera_id: lenses.len() as u32 + 1,
                 model,
+                calibration_path: path.clone(),
                 fisheye,
                 front_from_lens: front_from_imu * lens_from_imu.inverse(),
                 shift_from_front_s: shift - front_shift,
@@ -534,7 +535,6 @@ fn load_maps(exp: &SessionExport) -> Result<Vec<SceneMap>> {
 
 /// Sample, pose and write the images of one episode; returns the time groups used and the
 /// sampled frames left out for want of a pose.
-#[allow(clippy::too_many_arguments)]
 fn pose_episode(
     ep: &super::EpisodeOutputs,
     lenses: &[Lens],
@@ -549,14 +549,8 @@ fn pose_episode(
         .map(|l| ViewStream::open(ep, &l.view))
         .collect::<Result<Vec<_>>>()?;
     for (l, s) in lenses.iter().zip(&streams) {
-        let (w, h) = s.source.resolution()?;
-        if (w, h) != (l.fisheye.width, l.fisheye.height) {
-            return Err(export_err(format!(
-                "episode {}: view {}.{} has frames of {w}x{h} px, its calibration is for {}x{} px; \
-                 ingest at the calibration's resolution",
-                ep.name, l.view.camera, l.view.lens, l.fisheye.width, l.fisheye.height
-            )));
-        }
+        s.source
+            .check_calibration_size(&l.model, &l.calibration_path, None)?;
     }
     let rate = choose_rate(Some(rate_hz), &source_rates(ep, &streams), &ep.name)?;
     let grid = episode_grid(ep, &streams, rate)?;
@@ -565,29 +559,35 @@ fn pose_episode(
     // Picked frames that got a pose, per lens: (frame index, image name).
     let mut written: Vec<Vec<(usize, String)>> = vec![Vec::new(); lenses.len()];
     let mut unposed = 0usize;
+    // Per rig: its wrist's trajectory and its reference lens (the front where exported).
+    let rig_wrists: Vec<_> = scene
+        .rigs
+        .iter()
+        .map(|rig| ep.wrists.iter().find(|w| w.side == rig.side))
+        .collect();
     for k in 0..times.len() {
         let group = first_group + k;
-        for (r, rig) in scene.rigs.iter().enumerate() {
-            let Some(wrist) = ep.wrists.iter().find(|w| w.side == rig.side) else {
+        for (r, wrist) in rig_wrists.iter().enumerate() {
+            let Some(wrist) = wrist else {
                 continue;
             };
-            let clock = ep.clock(rig.side.camera_name());
+            let rig_lenses = &scene.rigs[r].lenses;
+            let ref_lens = &lenses[rig_lenses[0]];
             // Each lens's frame, at the front-lens time its exposure corresponds to.
-            let mut shots: Vec<(usize, usize, f64)> = Vec::new();
-            for &li in &rig.lenses {
-                let frame = picks[li][k];
-                let t_cam = streams[li].source.frames()[frame].t + lenses[li].shift_from_front_s;
-                let Some(t) = session_time(clock, t_cam) else {
-                    unposed += 1;
-                    continue;
-                };
-                shots.push((li, frame, t));
-            }
+            let mut shots: Vec<(usize, usize, f64)> = rig_lenses
+                .iter()
+                .map(|&li| {
+                    let frame = picks[li][k];
+                    let t = streams[li].session_times[frame] + lenses[li].shift_from_front_s;
+                    (li, frame, t)
+                })
+                .collect();
             shots.sort_by(|a, b| a.2.total_cmp(&b.2));
-            let mut current: Option<(usize, f64)> = None;
+            // The rig frame being filled: its index, time and the front camera's pose.
+            let mut current: Option<(usize, f64, Pose)> = None;
             for (li, frame, t) in shots {
-                let frame_index = match current {
-                    Some((f, t0)) if (t - t0).abs() <= RIG_SYNC_TOL_S => f,
+                let (frame_index, scene_from_front) = match current {
+                    Some((f, t0, pose)) if (t - t0).abs() <= RIG_SYNC_TOL_S => (f, pose),
                     _ => {
                         let Some(sample) = wrist
                             .sample(t)
@@ -597,26 +597,21 @@ fn pose_episode(
                             current = None;
                             continue;
                         };
-                        let ref_lens = &lenses[rig.lenses[0]];
-                        let scene_from_ref = sample.scene_from_front_cam * ref_lens.front_from_lens;
+                        let pose = sample.scene_from_front_cam;
                         scene.frames.push(RigFrame {
                             id: scene.frames.len() as u32 + 1,
                             rig: r,
-                            ref_from_scene: scene_from_ref.inverse(),
+                            ref_from_scene: (pose * ref_lens.front_from_lens).inverse(),
                             images: Vec::new(),
                         });
-                        current = Some((scene.frames.len() - 1, t));
-                        scene.frames.len() - 1
+                        let f = scene.frames.len() - 1;
+                        current = Some((f, t, pose));
+                        (f, pose)
                     }
                 };
                 let lens = &lenses[li];
-                let ref_lens = &lenses[rig.lenses[0]];
-                let rig_frame = &mut scene.frames[frame_index];
-                let scene_from_cam = rig_frame.ref_from_scene.inverse()
-                    * ref_lens.front_from_lens.inverse()
-                    * lens.front_from_lens;
                 let id = scene.images.len() as u32 + 1;
-                rig_frame.images.push(id);
+                scene.frames[frame_index].images.push(id);
                 let name = format!(
                     "{}/{}_{}/{frame:06}.png",
                     ep.name, lens.view.camera, lens.view.lens
@@ -626,7 +621,7 @@ fn pose_episode(
                     id,
                     lens: li,
                     name: name.clone(),
-                    scene_from_cam,
+                    scene_from_cam: scene_from_front * lens.front_from_lens,
                     points2d,
                     test: group.is_multiple_of(SPLIT_EVERY),
                 });
@@ -642,9 +637,8 @@ fn pose_episode(
             times.len()
         )));
     }
+    // Frames are in time order (the picks of increasing times).
     for (li, frames) in written.iter().enumerate() {
-        let mut frames = frames.clone();
-        frames.sort();
         let indices: Vec<usize> = frames.iter().map(|f| f.0).collect();
         let view = lenses[li].view.key();
         super::video::for_each_pick(
@@ -652,15 +646,10 @@ fn pose_episode(
             &indices,
             |m| export_err(format!("episode {}: view {view}: {m}", ep.name)),
             |k, frame| {
-                let rgb: Vec<u8> = frame
-                    .bgr
-                    .chunks_exact(3)
-                    .flat_map(|p| [p[2], p[1], p[0]])
-                    .collect();
                 let mut png = Vec::new();
                 image::codecs::png::PngEncoder::new(&mut png)
                     .write_image(
-                        &rgb,
+                        &frame.to_rgb(),
                         frame.width as u32,
                         frame.height as u32,
                         image::ExtendedColorType::Rgb8,
@@ -996,9 +985,27 @@ mod tests {
     #[test]
     fn double_sphere_refits_within_a_tenth_of_a_pixel() {
         let ds = DoubleSphere::new(960, 960, [350.0, 350.0, 480.0, 480.0, -0.2, 0.6]).unwrap();
-        let f = opencv_fisheye(&Camera::DoubleSphere(ds), 195f64.to_radians()).unwrap();
-        let r = f.refit.unwrap();
-        assert!(r.max_px < MAX_REFIT_ERROR_PX, "{r:?}");
+        let max_theta = 195f64.to_radians() / 2.0;
+        let f = opencv_fisheye(&Camera::DoubleSphere(ds.clone()), 2.0 * max_theta).unwrap();
+        assert!(f.refit.is_some());
+        // The written camera, back in KIWI's pixel convention, against the lens at azimuths
+        // and angles the fit did not sample.
+        let mut p = f.params;
+        p[2] -= PIXEL_CENTRE_OFFSET;
+        p[3] -= PIXEL_CENTRE_OFFSET;
+        let kb4 = Kb4::new(960, 960, p).unwrap();
+        for i in 0..40 {
+            let theta = max_theta * (i as f64 + 0.37) / 40.0;
+            for phi in [0.3, std::f64::consts::FRAC_PI_4, 2.0] {
+                let d = bearing_from_angles(theta, phi);
+                let (a, b) = (ds.project(&d).unwrap(), kb4.project(&d).unwrap());
+                assert!(
+                    (a - b).norm() < MAX_REFIT_ERROR_PX,
+                    "θ {theta}, φ {phi}: {}",
+                    (a - b).norm()
+                );
+            }
+        }
     }
 
     #[test]

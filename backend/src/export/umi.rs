@@ -240,12 +240,7 @@ pub fn write(exp: &SessionExport, options: &ExportOptions, dir: &Path) -> Result
                         }
                         _ => image_shapes[i] = Some((frame.width, frame.height)),
                     }
-                    let rgb: Vec<u8> = frame
-                        .bgr
-                        .chunks_exact(3)
-                        .flat_map(|p| [p[2], p[1], p[0]])
-                        .collect();
-                    store.chunk(&name, row + k, 4, &rgb)
+                    store.chunk(&name, row + k, 4, &frame.to_rgb())
                 },
             )?;
         }

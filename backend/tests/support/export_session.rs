@@ -10,6 +10,9 @@
 
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use serde_json::Value;
 
 use nalgebra::{Translation3, Vector3};
 
@@ -138,7 +141,7 @@ fn write_episode(spec: &Synthetic, root: &Path, name: &str, verdict: Verdict) {
             );
             writeln!(
                 csv,
-                "{ts:.6},{t_cam:.6},{pose},{pose},1.000e-3,2.000e-3,1.500e-3,2.500e-3,{support},front,{opening},{unit},0.900"
+                "{ts},{t_cam},{pose},{pose},1.000e-3,2.000e-3,1.500e-3,2.500e-3,{support},front,{opening},{unit},0.900"
             )
             .unwrap();
         }
@@ -273,7 +276,7 @@ pub fn rear_metric() -> kiwi_backend::vision::align::Sim3 {
     }
 }
 
-fn sim_json(s: &kiwi_backend::vision::align::Sim3) -> serde_json::Value {
+fn sim_json(s: &kiwi_backend::vision::align::Sim3) -> Value {
     let q = s.rotation.coords;
     serde_json::json!({
         "scale": s.scale,
@@ -438,4 +441,43 @@ pub fn add_scene_inputs(spec: &Synthetic, root: &Path, rate: f64) {
         });
         std::fs::write(dir.join("placement.json"), json.to_string()).unwrap();
     }
+}
+
+/// Run a Python reader; `None` (and a loud message) when its module is not installed.
+pub fn python_reader(script: &str, args: &[&Path]) -> Option<Value> {
+    let script = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/python")
+        .join(script);
+    let out = Command::new("python3").arg(&script).args(args).output();
+    let out = match out {
+        Ok(o) => o,
+        Err(e) => {
+            eprintln!("SKIPPED: python3 not available ({e}); run `make deps`");
+            return None;
+        }
+    };
+    if out.status.code() == Some(3) {
+        eprintln!(
+            "SKIPPED independent read-back with {}: {} — run `make deps`",
+            script.display(),
+            String::from_utf8_lossy(&out.stderr).trim()
+        );
+        return None;
+    }
+    assert!(
+        out.status.success(),
+        "{} failed: {}",
+        script.display(),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    Some(serde_json::from_slice(&out.stdout).unwrap())
+}
+
+/// A JSON array of numbers.
+pub fn f64s(v: &Value) -> Vec<f64> {
+    v.as_array()
+        .unwrap()
+        .iter()
+        .map(|x| x.as_f64().unwrap())
+        .collect()
 }
