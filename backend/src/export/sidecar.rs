@@ -143,7 +143,8 @@ fn stage_dirs(work: &Path) -> Vec<PathBuf> {
         p.is_dir()
             && p.file_name().and_then(|n| n.to_str()).is_some_and(|n| {
                 !n.starts_with('.')
-                    && !crate::pipeline::graph::AFTER_EPISODE_FAMILIES.contains(&n.split('-').next().unwrap_or(n))
+                    && !crate::pipeline::graph::AFTER_EPISODE_FAMILIES
+                        .contains(&n.split('-').next().unwrap_or(n))
             })
     })
 }
