@@ -3,7 +3,7 @@
 
 use std::path::PathBuf;
 
-use anyhow::{Context, Result};
+use anyhow::Result;
 
 use kiwi_backend::pipeline::SessionContext;
 use kiwi_backend::report::{PAGE_FILE, REPORT_DIR, write_report};
@@ -26,10 +26,6 @@ pub fn run_report_cmd(args: &ReportArgs) -> Result<()> {
         .out
         .clone()
         .unwrap_or_else(|| ctx.root.join(REPORT_DIR).join(PAGE_FILE));
-    if let Some(parent) = out.parent().filter(|p| !p.as_os_str().is_empty()) {
-        std::fs::create_dir_all(parent)
-            .with_context(|| format!("creating the folder of {}", out.display()))?;
-    }
     let summary = write_report(&ctx, &out)?;
     println!(
         "wrote {} ({} episodes, {} charts, {:.2} MB)",

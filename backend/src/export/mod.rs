@@ -435,7 +435,8 @@ impl WristTrajectory {
     }
 }
 
-fn median_period(t: &[f64]) -> Option<f64> {
+/// Median interval between consecutive times (s).
+pub(crate) fn median_period(t: &[f64]) -> Option<f64> {
     let mut d: Vec<f64> = t.windows(2).map(|w| w[1] - w[0]).collect();
     if d.is_empty() {
         return None;

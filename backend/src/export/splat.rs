@@ -33,10 +33,9 @@ use super::{
     export_err, resolve_views, source_rates,
 };
 use crate::error::{BackendError, Result};
-use crate::formats::results::{read_metric, read_placement};
 use crate::outputs::SupportClass;
-use crate::pipeline::graph::{MapName, StageKind, id_of};
-use crate::vision::align::Sim3;
+use crate::pipeline::graph::MapName;
+use crate::pipeline::stages::map_in_scene;
 use crate::vision::map::VisualMap;
 
 /// Images per second and lens stream when none is asked for: splatting wants views from many
@@ -486,42 +485,12 @@ struct SceneMap {
 }
 
 fn load_maps(exp: &SessionExport) -> Result<Vec<SceneMap>> {
-    let dir = |kind: StageKind| id_of(&kind).dir(&exp.root);
     let mut names = vec![MapName::Rear];
     names.extend(exp.session.wrists.keys().map(|s| MapName::Front(*s)));
     let mut maps = Vec::new();
     let mut next_id = 1u64;
     for name in names {
-        let map_path = dir(StageKind::Map { map: name }).join("map.kmap");
-        if !map_path.is_file() {
-            return Err(BackendError::Input {
-                path: map_path,
-                message: "missing: the scene points come from the session's maps; run `kiwi run` \
-                          on the session first"
-                    .into(),
-            });
-        }
-        let map = VisualMap::load(&map_path)?;
-        let metric_path = dir(StageKind::Metric { map: name }).join("metric.json");
-        let metric = read_metric(&metric_path)?
-            .world_from_map
-            .to_sim3(&metric_path)?;
-        // The rear map is the scene's; a front map is placed into it (eq. 2).
-        let placement: Option<Sim3> = match name {
-            MapName::Rear => None,
-            MapName::Front(side) => {
-                let path = dir(StageKind::Placement { side }).join("placement.json");
-                Some(read_placement(&path)?.scene_from_front_map.to_sim3(&path)?)
-            }
-        };
-        let scene_points: Vec<Vector3<f64>> = map
-            .landmarks
-            .iter()
-            .map(|l| {
-                let p = metric.transform_point(&Vector3::from(l.position));
-                placement.as_ref().map_or(p, |g| g.transform_point(&p))
-            })
-            .collect();
+        let (map, scene_points) = map_in_scene(&exp.root, name)?;
         let first_id = next_id;
         next_id += scene_points.len() as u64;
         maps.push(SceneMap {

@@ -446,6 +446,12 @@ fn execute(
     // An export leaves a failed episode out (its published quality.json says why) rather than
     // fail with it; the report shows the failure.
     let tolerates_broken = matches!(node.kind, StageKind::Export { .. } | StageKind::Report);
+    // A stage this run may not execute (outside --only) keeps what it last published.
+    let publish = |reason: &str| {
+        if runnable {
+            publish_failure(ctx, node, reason);
+        }
+    };
     if let Some((dep, Decided::Broken(reason))) = deps
         .iter()
         .find(|(_, d)| matches!(d, Decided::Broken(_)) && !tolerates_broken)
@@ -455,10 +461,7 @@ fn execute(
         } else {
             format!("needs {}, which failed: {reason}", dep.label())
         };
-        // A stage this run may not execute (outside --only) keeps what it last published.
-        if runnable {
-            publish_failure(ctx, node, &reason);
-        }
+        publish(&reason);
         return (Decided::Broken(reason.clone()), Outcome::Blocked { reason });
     }
     let digests: BTreeMap<StageId, String> = deps
@@ -472,7 +475,7 @@ fn execute(
         Ok(f) => f,
         Err(e) => {
             let reason = e.to_string();
-            publish_failure(ctx, node, &reason);
+            publish(&reason);
             return (Decided::Broken(reason.clone()), Outcome::Failed { reason });
         }
     };

@@ -887,6 +887,40 @@ fn run_gripper(env: &StageEnv<'_>, episode: &str, side: Side) -> Result<()> {
     write_json(&files.summary, &without_timings(summary))
 }
 
+/// A session map and its landmarks in the scene frame: the map's metric recovery, and for a
+/// front map its placement into the scene (eq. 2). `root` is the session folder.
+pub fn map_in_scene(root: &Path, map: MapName) -> Result<(VisualMap, Vec<nalgebra::Vector3<f64>>)> {
+    let dir = |kind: StageKind| id_of(&kind).dir(root);
+    let map_path = dir(StageKind::Map { map }).join(MAP_FILE);
+    if !map_path.is_file() {
+        return Err(input(
+            &map_path,
+            "missing: run `kiwi run` on the session first (it builds the maps)".into(),
+        ));
+    }
+    let visual = VisualMap::load(&map_path)?;
+    let metric_path = dir(StageKind::Metric { map }).join("metric.json");
+    let metric = read_metric(&metric_path)?
+        .world_from_map
+        .to_sim3(&metric_path)?;
+    let placement = match map {
+        MapName::Rear => None,
+        MapName::Front(side) => {
+            let path = dir(StageKind::Placement { side }).join("placement.json");
+            Some(read_placement(&path)?.scene_from_front_map.to_sim3(&path)?)
+        }
+    };
+    let points = visual
+        .landmarks
+        .iter()
+        .map(|l| {
+            let p = metric.transform_point(&nalgebra::Vector3::from(l.position));
+            placement.as_ref().map_or(p, |g| g.transform_point(&p))
+        })
+        .collect();
+    Ok((visual, points))
+}
+
 /// Read a stage's manifest, for summaries.
 pub fn manifest_of(ctx: &SessionContext, id: &StageId) -> Option<Manifest> {
     Manifest::read(&id.dir(&ctx.root))
@@ -917,7 +951,8 @@ fn localization_record(path: &Path) -> Result<crate::outputs::LocalizationRecord
     Ok(record)
 }
 
-fn read_json_file<T: serde::de::DeserializeOwned>(path: &Path, what: &str) -> Result<T> {
+/// Read a JSON file a stage wrote (`what` names it in the error).
+pub(crate) fn read_json_file<T: serde::de::DeserializeOwned>(path: &Path, what: &str) -> Result<T> {
     let text = kiwi_core::io::read_text(path)?;
     serde_json::from_str(&text).map_err(|e| {
         input(

@@ -22,16 +22,14 @@ use std::path::Path;
 use kiwi_core::layout::ToolKind;
 
 use crate::error::Result;
-use crate::formats::results::read_metric;
 use crate::formats::tables::{LensFrame, read_lens_frames};
-use crate::outputs::{QualityRecord, SupportClass, read_quality};
+use crate::outputs::{QualityRecord, SupportClass, read_quality, session_time};
 use crate::pipeline::SessionContext;
 use crate::pipeline::graph::{Lens, MapName, StageKind, build, id_of};
 use crate::pipeline::stage::{Manifest, RunStatus};
-use crate::pipeline::stages::{MAP_FILE, POSES_FILE, PUBLISHED_DIR, SYNC_FILE};
+use crate::pipeline::stages::{POSES_FILE, PUBLISHED_DIR, SYNC_FILE, map_in_scene, read_json_file};
 use crate::quality::Verdict;
-use crate::sync::{CameraClock, SyncResult};
-use crate::vision::map::VisualMap;
+use crate::sync::SyncResult;
 
 /// The session sub-folder the report stage publishes (`report/`).
 pub const REPORT_DIR: &str = "report";
@@ -243,27 +241,9 @@ pub fn gather(ctx: &SessionContext) -> SessionReport {
 /// The scene map's landmarks in the scene frame: the rear map made metric and z-up by its
 /// metric recovery.
 fn scene_landmarks(ctx: &SessionContext) -> std::result::Result<Vec<[f64; 3]>, String> {
-    let map_dir = id_of(&StageKind::Map { map: MapName::Rear }).dir(&ctx.root);
-    let metric_dir = id_of(&StageKind::Metric { map: MapName::Rear }).dir(&ctx.root);
-    let map = VisualMap::load(&map_dir.join(MAP_FILE))
-        .map_err(|e| format!("no scene map to draw: {e}"))?;
-    let metric_path = metric_dir.join("metric.json");
-    let scene_from_map = read_metric(&metric_path)
-        .and_then(|m| m.world_from_map.to_sim3(&metric_path))
-        .map_err(|e| format!("the scene map has no metric recovery: {e}"))?;
-    Ok(map
-        .landmarks
-        .iter()
-        .map(|l| {
-            let p = scene_from_map.transform_point(&nalgebra::Vector3::from(l.position));
-            [p.x, p.y, p.z]
-        })
-        .collect())
-}
-
-/// A camera-clock time on the session timeline when the camera is on it.
-fn on_session(clock: Option<&CameraClock>, t: f64) -> Option<f64> {
-    crate::outputs::session_time(clock, t)
+    let (_, points) =
+        map_in_scene(&ctx.root, MapName::Rear).map_err(|e| format!("no scene map to draw: {e}"))?;
+    Ok(points.iter().map(|p| [p.x, p.y, p.z]).collect())
 }
 
 fn episode_report(ctx: &SessionContext, name: &str, description: &str) -> EpisodeReport {
@@ -284,8 +264,12 @@ fn episode_report(ctx: &SessionContext, name: &str, description: &str) -> Episod
     .dir(&ctx.root)
     .join(SYNC_FILE);
     let sync: Option<SyncResult> = quality.as_ref().and_then(|q| q.sync.clone()).or_else(|| {
-        let text = kiwi_core::io::read_text(&sync_path).ok()?;
-        serde_json::from_str(&text).ok()
+        if !sync_path.is_file() {
+            return None;
+        }
+        read_json_file(&sync_path, "sync result")
+            .map_err(|e| notes.push(e.to_string()))
+            .ok()
     });
     let clock = |camera: &str| {
         sync.as_ref()
@@ -339,11 +323,12 @@ fn episode_report(ctx: &SessionContext, name: &str, description: &str) -> Episod
             }
             match read_lens_frames(&poses) {
                 Ok(mut frames) => {
+                    // A camera is on the session timeline or not, whatever the time.
                     let c = clock(camera);
-                    let session_clock = frames.iter().all(|f| on_session(c, f.t).is_some());
+                    let session_clock = session_time(c, 0.0).is_some();
                     if session_clock {
                         for f in &mut frames {
-                            f.t = on_session(c, f.t).unwrap_or(f.t);
+                            f.t = session_time(c, f.t).unwrap_or(f.t);
                         }
                     }
                     lenses.push(LensTrack {

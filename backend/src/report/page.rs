@@ -106,17 +106,12 @@ fn hex(c: Rgb) -> String {
 }
 
 fn support_color(s: SupportClass) -> Rgb {
-    SUPPORT_COLORS
-        .iter()
-        .find(|(c, _)| *c == s)
-        .map_or(OTHER_LOST_COLOR, |(_, rgb)| *rgb)
+    SUPPORT_COLORS[support_rank(s)].1
 }
 
+/// A support class's row in [`SUPPORT_COLORS`]: its rank, weakest last.
 fn support_rank(s: SupportClass) -> usize {
-    SUPPORT_COLORS
-        .iter()
-        .position(|(c, _)| *c == s)
-        .unwrap_or(0)
+    crate::export::support_code(s) as usize
 }
 
 fn verdict_badge(v: Option<Verdict>) -> String {
@@ -372,9 +367,7 @@ fn state_spans(times: &[f64], states: &[usize]) -> Vec<(f64, f64, usize)> {
     if n == 0 {
         return Vec::new();
     }
-    let mut steps: Vec<f64> = times.windows(2).map(|p| p[1] - p[0]).collect();
-    steps.sort_by(f64::total_cmp);
-    let step = steps.get(steps.len() / 2).copied().unwrap_or(0.0);
+    let step = crate::export::median_period(&times[..n]).unwrap_or(0.0);
     let end_of = |k: usize| {
         if k + 1 < n {
             times[k + 1]
@@ -942,7 +935,7 @@ mod tests {
         let page = render(&session(vec![failed])).unwrap();
         assert_eq!(page.plots, 0);
         for text in [
-            "unusable",
+            "class=\"verdict unusable\">unusable",
             "which failed: left/rear: no map",
             "No trajectory to draw",
         ] {
