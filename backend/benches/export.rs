@@ -1,6 +1,7 @@
 //! Export speed: seconds of `kiwi export` work per minute of recording, for each format, on a
 //! synthetic two-wrist session (front lenses at 29.97 Hz stored as PNG frames; the trajectories
-//! and openings of `tests/support/export_session.rs`).
+//! and openings of `tests/support/export_session.rs`). The scene format (COLMAP, with a mask per
+//! image) runs on a second session with both lenses per wrist and maps.
 //!
 //! `KIWI_BENCH_DURATION` (s, default 60) and `KIWI_BENCH_RESOLUTION` (px, square, default 480)
 //! change the setting; `KIWI_BENCH_DIR` keeps the session and exports there.
@@ -90,4 +91,33 @@ fn main() {
             bytes as f64 / 1e6
         );
     }
+    let scene_spec = synthetic::Synthetic {
+        rear_lens: true,
+        ..spec
+    };
+    let scene_root = root.join("scene");
+    let session = synthetic::make_session(&scene_spec, &scene_root);
+    synthetic::add_scene_inputs(&scene_spec, &scene_root, 1.0);
+    let out = scene_root.join("export-colmap");
+    let t = Instant::now();
+    let report = export(
+        &session,
+        ExportFormat::Colmap,
+        &ExportOptions {
+            episodes: Some(vec!["ep0".into()]),
+            rate: Some(1.0),
+            ..ExportOptions::default()
+        },
+        &out,
+    )
+    .unwrap();
+    let s = t.elapsed().as_secs_f64();
+    println!(
+        "  colmap: {s:7.2} s for {duration} s of recording = {:6.2} s per minute; {} images \
+         with masks (4 lenses at 1 Hz) = {:6.1} ms per image; output {:7.1} MB",
+        s / minutes,
+        report.frames,
+        1e3 * s / report.frames.max(1) as f64,
+        dir_bytes(&out) as f64 / 1e6
+    );
 }

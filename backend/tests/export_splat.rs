@@ -17,10 +17,15 @@ use std::path::{Path, PathBuf};
 use nalgebra::{Matrix4, Point2, Quaternion, UnitQuaternion, Vector3, Vector4};
 use serde_json::Value;
 
-use kiwi_backend::export::splat::{COLMAP_MODEL_DIR, PIXEL_CENTRE_OFFSET, SPLIT_EVERY, TEST_LIST};
+use kiwi_backend::export::mask::{IGNORE, KEEP, LensMasker};
+use kiwi_backend::export::splat::{
+    COLMAP_MODEL_DIR, MASK_SUFFIX, PIXEL_CENTRE_OFFSET, SPLIT_EVERY, TEST_LIST,
+};
 use kiwi_backend::export::{ExportFormat, ExportOptions, export, read_trajectory};
 use kiwi_core::camera::CameraModel;
 use kiwi_core::geometry::Pose;
+use kiwi_core::layout::ToolKind;
+use kiwi_core::tool::ToolDefinition;
 
 use synthetic::{FEATURE_NOISE_PX, LANDMARKS_PER_KEYFRAME, Synthetic, camera_time, f64s};
 
@@ -390,6 +395,84 @@ fn nerfstudio_transforms_round_trip_to_the_colmap_poses() {
     assert!(
         ply.contains(&format!("element vertex {points}\n")),
         "{ply:.300}"
+    );
+}
+
+/// Every exported image has a mask beside it, named where 3DGUT and nerfstudio look; a front
+/// mask covers the tool as its definition places it at the frame's gripper opening, and no
+/// more than the tool over its whole range.
+#[test]
+fn every_image_gets_a_mask_of_its_tool_at_its_opening() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path();
+    let session = scene_session(root);
+    let ns = root.join("nerfstudio");
+    export(&session, ExportFormat::Nerfstudio, &options(), &ns).unwrap();
+    let doc: Value =
+        serde_json::from_str(&std::fs::read_to_string(ns.join("transforms.json")).unwrap())
+            .unwrap();
+    let cals = synthetic::scene_calibrations(SPEC.width);
+    let tools =
+        [ToolKind::Chopstick, ToolKind::ParallelJaw].map(|k| ToolDefinition::builtin(k).unwrap());
+    let mut narrower_than_the_range = 0;
+    let frames = doc["frames"].as_array().unwrap();
+    for f in frames {
+        let image = f["file_path"].as_str().unwrap();
+        let mask_path = f["mask_path"].as_str().unwrap();
+        assert_eq!(
+            mask_path,
+            image.replace(".png", MASK_SUFFIX),
+            "3DGUT's name"
+        );
+        let mask = image::open(ns.join(mask_path)).unwrap();
+        assert_eq!(mask.color(), image::ColorType::L8, "{mask_path}");
+        let mask = mask.to_luma8();
+        assert_eq!(mask.dimensions(), (SPEC.width, SPEC.height));
+        assert!(mask.pixels().all(|p| p.0[0] == KEEP || p.0[0] == IGNORE));
+        let name = image.trim_start_matches("images/");
+        let (c, lens, frame) = parse_name(name);
+        let lens_cal = cals[c].lens(&lens).unwrap();
+        let camera = lens_cal.camera().unwrap();
+        let lens_from_front = match lens.as_str() {
+            "front" => Pose::identity(),
+            _ => synthetic::front_from_rear(&cals[c]).inverse(),
+        };
+        let masker = LensMasker::new(&camera, lens_cal.valid_fov_rad, lens_from_front);
+        let row =
+            &read_trajectory(&root.join(format!("episodes/ep0/out/{}.csv", ["left", "right"][c])))
+                .unwrap()[frame];
+        // The synthetic parallel jaw opens past the tool's 0.1 m near the end; the plates stop
+        // there.
+        let truth =
+            synthetic::truth_opening(c, row.t_session.unwrap()).min(tools[c].jaws.max_opening);
+        let at_truth = masker.mask(&tools[c].solids(truth));
+        let swept: Vec<_> = tools[c]
+            .sweep_openings()
+            .iter()
+            .flat_map(|&o| tools[c].solids(o))
+            .collect();
+        let swept = masker.mask(&swept);
+        for ((m, t), s) in mask.pixels().zip(at_truth.pixels()).zip(swept.pixels()) {
+            if t.0[0] == IGNORE {
+                assert_eq!(
+                    m.0[0], IGNORE,
+                    "{mask_path}: the tool at its opening is kept"
+                );
+            }
+            if s.0[0] == KEEP {
+                assert_eq!(m.0[0], KEEP, "{mask_path}: beyond the tool's whole range");
+            }
+        }
+        let ignored = |m: &image::GrayImage| m.pixels().filter(|p| p.0[0] == IGNORE).count();
+        if ignored(&mask) < ignored(&swept) {
+            narrower_than_the_range += 1;
+        }
+    }
+    // The measured opening narrows the front masks (the jaws' sweep is wider than the band).
+    assert!(
+        narrower_than_the_range >= frames.len() / 4,
+        "{narrower_than_the_range} of {} masks narrower than the tool's range",
+        frames.len()
     );
 }
 

@@ -58,7 +58,7 @@ fn a_killed_run_resumes_to_byte_identical_results() {
     let a = small_session(&tmp.path().join("a"), 2);
     // With the datasets on: their stages run last, and resume like the others.
     let mut text = std::fs::read_to_string(&a).unwrap();
-    text.push_str("\n[export]\nformats = [\"lerobot\", \"sidecar\"]\n");
+    text.push_str("\n[export]\nformats = [\"lerobot\", \"sidecar\", \"colmap\"]\n");
     std::fs::write(&a, text).unwrap();
     let b_dir = tmp.path().join("b");
     copy_inputs(a.parent().unwrap(), &b_dir);
@@ -90,9 +90,30 @@ fn a_killed_run_resumes_to_byte_identical_results() {
         "some episode is usable: {}",
         report["counts"]
     );
-    for name in ["session/export-lerobot", "session/export-sidecar"] {
+    for name in [
+        "session/export-lerobot",
+        "session/export-sidecar",
+        "session/export-colmap",
+    ] {
         let s = stages.iter().find(|s| s["stage"] == name).unwrap();
         assert_eq!(s["outcome"], "ran", "{s}");
+    }
+    // The scene export posed images of the usable episodes, each with its mask.
+    let colmap = a.parent().unwrap().join("exports/colmap");
+    let images = std::fs::read_to_string(colmap.join("sparse/0/images.txt")).unwrap();
+    let names: Vec<&str> = images
+        .lines()
+        .filter(|l| !l.starts_with('#'))
+        .step_by(2)
+        .filter_map(|l| l.split_whitespace().nth(9))
+        .collect();
+    assert!(!names.is_empty(), "{images:.400}");
+    for name in &names {
+        assert!(usable.iter().any(|ep| name.starts_with(ep)), "{name}");
+        let mask = colmap
+            .join("images")
+            .join(name.replace(".png", "_mask.png"));
+        assert!(mask.is_file(), "{}", mask.display());
     }
     let info: serde_json::Value = serde_json::from_str(
         &std::fs::read_to_string(a.parent().unwrap().join("exports/lerobot/meta/info.json"))

@@ -350,6 +350,116 @@ impl ToolDefinition {
             UnitQuaternion::from_matrix(&r),
         )
     }
+
+    /// The tool's solid parts at an opening (rad for the chopstick, m for the parallel jaw), as
+    /// boxes in the front-lens frame: each jaw (its dotted face included) and the body tag's
+    /// plate. These parts move with the camera, so they are what a scene export masks out. The
+    /// bare hand has none.
+    pub fn solids(&self, opening: f64) -> Vec<ToolSolid> {
+        if self.kind == ToolKind::BareHand {
+            return Vec::new();
+        }
+        let hinge = self.hinge();
+        let d0 = self.jaw_direction();
+        let n = self.plane_normal();
+        let jaw_half = Vector3::new(
+            self.jaws.length_m / 2.0,
+            self.jaws.half_thickness_m,
+            self.jaws.half_width_m,
+        );
+        // A jaw's box: x along the jaw, y the dot plane's normal, z across the jaw.
+        let jaw = |dir: Vector3<f64>, center: Vector3<f64>| ToolSolid {
+            front_from_solid: Isometry3::from_parts(
+                Translation3::from(center),
+                UnitQuaternion::from_matrix(&Matrix3::from_columns(&[
+                    dir,
+                    n,
+                    dir.cross(&n).normalize(),
+                ])),
+            ),
+            half_m: jaw_half,
+        };
+        let mid = self.jaws.offset_m + self.jaws.length_m / 2.0;
+        let mut solids: Vec<ToolSolid> = [-0.5, 0.5]
+            .iter()
+            .map(|s| match self.kind {
+                ToolKind::Chopstick => {
+                    let dir = UnitQuaternion::from_axis_angle(
+                        &nalgebra::Unit::new_normalize(n),
+                        s * opening,
+                    ) * d0;
+                    jaw(dir, hinge + dir * mid)
+                }
+                // The plates slide apart along the jaw plane's cross direction; the opening is
+                // the gap between their inner faces.
+                _ => {
+                    let across = d0.cross(&n).normalize();
+                    let offset = s * (opening + 2.0 * self.jaws.half_width_m);
+                    jaw(d0, hinge + d0 * mid + across * offset)
+                }
+            })
+            .collect();
+        // The tag plate lies in the jaw plane behind the hinge, facing the camera.
+        let tag_z = -n;
+        let tag_x = d0.cross(&tag_z).normalize();
+        let plate = self.marker.size_m * tag_plate_scale(&self.marker.dictionary);
+        solids.push(ToolSolid {
+            front_from_solid: Isometry3::from_parts(
+                Translation3::from(hinge - d0 * self.marker.behind_hinge_m),
+                UnitQuaternion::from_matrix(&Matrix3::from_columns(&[
+                    tag_x,
+                    tag_z.cross(&tag_x),
+                    tag_z,
+                ])),
+            ),
+            half_m: Vector3::new(plate / 2.0, plate / 2.0, self.marker.face_offset_m),
+        });
+        solids
+    }
+
+    /// Openings that sweep the tool's whole range (0 to `jaws.max_opening`) so closely that no
+    /// point of a jaw moves further than the jaw is wide between two of them: the union of
+    /// their [`solids`](Self::solids) covers every opening.
+    pub fn sweep_openings(&self) -> Vec<f64> {
+        let range = self.jaws.max_opening.max(0.0);
+        let width = 2.0 * self.jaws.half_width_m;
+        // How far the farthest jaw point moves per unit of opening.
+        let reach = match self.kind {
+            ToolKind::Chopstick => (self.jaws.offset_m + self.jaws.length_m) / 2.0,
+            _ => 0.5,
+        };
+        let steps = if width > 0.0 {
+            ((range * reach / width).ceil() as usize).clamp(1, MAX_SWEEP_STEPS)
+        } else {
+            MAX_SWEEP_STEPS
+        };
+        (0..=steps)
+            .map(|k| range * k as f64 / steps as f64)
+            .collect()
+    }
+}
+
+/// Most openings [`ToolDefinition::sweep_openings`] returns (a guard against a degenerate
+/// definition, far above the 10–20 the built-in tools need).
+const MAX_SWEEP_STEPS: usize = 256;
+
+/// Side of an ArUco tag's plate over its black square's side: an N×N dictionary's black square
+/// is N + 2 modules wide and the printed plate adds one white module on each side.
+fn tag_plate_scale(dictionary: &str) -> f64 {
+    let bits = dictionary
+        .split_once('x')
+        .and_then(|(n, _)| n.parse::<f64>().ok())
+        .unwrap_or(4.0);
+    (bits + 4.0) / (bits + 2.0)
+}
+
+/// A solid part of a tool: a box rigid with the front camera.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ToolSolid {
+    /// `front_from_solid`: the box's centre and axes in the front-lens frame.
+    pub front_from_solid: Pose,
+    /// Half extents along the box's axes (m).
+    pub half_m: Vector3<f64>,
 }
 
 /// Schema version of tool calibration artifacts.

@@ -10,6 +10,7 @@
 //! onto it, and the views (lens streams) with the frame chosen for every row.
 
 pub mod lerobot;
+pub mod mask;
 mod parquet;
 pub mod sidecar;
 pub mod splat;

@@ -12,7 +12,8 @@
 //! Lenses of one unit exposed together are one rig frame, so front and rear stay one rigid body.
 //! The head camera has no pose in the outputs and is not exported.
 //!
-//! Not for: masks of the tool and camera body (not written yet), the head camera.
+//! Every image gets a mask ([`super::mask`]) of the tool's parts at the frame's gripper opening
+//! and of the camera body at the rim of the lens field.
 
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
@@ -27,7 +28,9 @@ use kiwi_core::camera::{Camera, CameraModel, DoubleSphere, Kb4, bearing_from_ang
 use kiwi_core::geometry::Pose;
 use kiwi_core::io::write_atomic;
 use kiwi_core::layout::{EpisodeLayout, Side};
+use kiwi_core::tool::ToolDefinition;
 
+use super::mask::{LensMasker, mask_openings};
 use super::{
     ExportOptions, ExportReport, SessionExport, View, ViewStream, choose_rate, episode_grid,
     export_err, resolve_views, source_rates,
@@ -66,6 +69,8 @@ pub const TEST_LIST: &str = "test.txt";
 pub const TRAIN_LIST: &str = "train.txt";
 /// The export's own record: lenses, refits, counts.
 pub const SUMMARY_FILE: &str = "kiwi_export.json";
+/// Ending of a mask's name: 3DGUT reads `<image stem>_mask.png` beside each image.
+pub const MASK_SUFFIX: &str = "_mask.png";
 /// nerfstudio's initial points.
 pub const PLY_FILE: &str = "points3D.ply";
 
@@ -220,6 +225,10 @@ struct Lens {
     front_from_lens: Pose,
     /// This lens's time shift minus the front lens's (s).
     shift_from_front_s: f64,
+    /// The unit's tool (the parts masked out of its images).
+    tool: ToolDefinition,
+    /// Per-pixel rays for the masks.
+    masker: LensMasker,
 }
 
 /// One exported image.
@@ -228,6 +237,8 @@ struct SceneImage {
     lens: usize,
     name: String,
     scene_from_cam: Pose,
+    /// The mask's name beside the image (`<frame>_mask.png`).
+    mask_name: String,
     /// `(pixel in COLMAP's convention, point id)`.
     points2d: Vec<([f64; 2], u64)>,
     test: bool,
@@ -280,6 +291,7 @@ struct Summary {
     rate_hz: f64,
     pixel_convention: &'static str,
     scene_frame: &'static str,
+    masks: &'static str,
     lenses: Vec<LensSummary>,
     images: usize,
     test_images: usize,
@@ -345,6 +357,9 @@ pub fn write(
         rate_hz,
         pixel_convention: "COLMAP: the first pixel's centre is at (0.5, 0.5)",
         scene_frame: "KIWI's scene frame: metric, z up (against gravity), the session's rear map",
+        masks: "images/<image stem>_mask.png: 255 where the pixel sees the scene, 0 on the tool's \
+                jaws and tag (at the frame's gripper opening) and the camera body beyond the \
+                lens's valid field",
         lenses: scene
             .lenses
             .iter()
@@ -432,11 +447,14 @@ fn open_lenses(exp: &SessionExport, views: &[View]) -> Result<Vec<Lens>> {
             Ok::<_, BackendError>((l, cam_from_imu, l.time_shift_s.unwrap_or(0.0)))
         };
         let (_, front_from_imu, front_shift) = lens_cal("front")?;
+        let tool = ToolDefinition::builtin(cfg.tool)?;
         for view in views.iter().filter(|v| v.camera == side.camera_name()) {
             let (l, lens_from_imu, shift) = lens_cal(&view.lens)?;
             let model = l.camera()?;
             let fisheye = opencv_fisheye(&model, l.valid_fov_rad)
                 .map_err(|m| input(format!("lens `{}`: {m}", view.lens)))?;
+            let front_from_lens = front_from_imu * lens_from_imu.inverse();
+            let masker = LensMasker::new(&model, l.valid_fov_rad, front_from_lens.inverse());
             lenses.push(Lens {
                 view: view.clone(),
                 side: *side,
@@ -444,8 +462,10 @@ fn open_lenses(exp: &SessionExport, views: &[View]) -> Result<Vec<Lens>> {
                 model,
                 calibration_path: path.clone(),
                 fisheye,
-                front_from_lens: front_from_imu * lens_from_imu.inverse(),
+                front_from_lens,
                 shift_from_front_s: shift - front_shift,
+                tool: tool.clone(),
+                masker,
             });
         }
     }
@@ -525,8 +545,9 @@ fn pose_episode(
     let grid = episode_grid(ep, &streams, rate)?;
     let times = grid.times();
     let picks: Vec<Vec<usize>> = streams.iter().map(|s| s.nearest_frames(&times).0).collect();
-    // Picked frames that got a pose, per lens: (frame index, image name).
-    let mut written: Vec<Vec<(usize, String)>> = vec![Vec::new(); lenses.len()];
+    // Picked frames that got a pose, per lens: frame index, image name, mask name and the
+    // openings whose jaws the mask covers.
+    let mut written: Vec<Vec<Picked>> = vec![Vec::new(); lenses.len()];
     let mut unposed = 0usize;
     // Per rig: its wrist's trajectory and its reference lens (the front where exported).
     let rig_wrists: Vec<_> = scene
@@ -552,11 +573,14 @@ fn pose_episode(
                 })
                 .collect();
             shots.sort_by(|a, b| a.2.total_cmp(&b.2));
-            // The rig frame being filled: its index, time and the front camera's pose.
-            let mut current: Option<(usize, f64, Pose)> = None;
+            // The rig frame being filled: its index, time, the front camera's pose and the
+            // gripper opening (with its confidence).
+            let mut current: Option<(usize, f64, Pose, Option<f64>, f64)> = None;
             for (li, frame, t) in shots {
-                let (frame_index, scene_from_front) = match current {
-                    Some((f, t0, pose)) if (t - t0).abs() <= RIG_SYNC_TOL_S => (f, pose),
+                let (frame_index, scene_from_front, opening, confidence) = match current {
+                    Some((f, t0, pose, o, c)) if (t - t0).abs() <= RIG_SYNC_TOL_S => {
+                        (f, pose, o, c)
+                    }
                     _ => {
                         let Some(sample) = wrist
                             .sample(t)
@@ -574,27 +598,36 @@ fn pose_episode(
                             images: Vec::new(),
                         });
                         let f = scene.frames.len() - 1;
-                        current = Some((f, t, pose));
-                        (f, pose)
+                        let (o, c) = (sample.opening, sample.opening_confidence);
+                        current = Some((f, t, pose, o, c));
+                        (f, pose, o, c)
                     }
                 };
                 let lens = &lenses[li];
                 let id = scene.images.len() as u32 + 1;
                 scene.frames[frame_index].images.push(id);
-                let name = format!(
-                    "{}/{}_{}/{frame:06}.png",
+                let stem = format!(
+                    "{}/{}_{}/{frame:06}",
                     ep.name, lens.view.camera, lens.view.lens
                 );
+                let name = format!("{stem}.png");
+                let mask_name = format!("{stem}{MASK_SUFFIX}");
                 let points2d = observations(maps, &ep.name, &lens.view, frame);
                 scene.images.push(SceneImage {
                     id,
                     lens: li,
                     name: name.clone(),
                     scene_from_cam: scene_from_front * lens.front_from_lens,
+                    mask_name: mask_name.clone(),
                     points2d,
                     test: group.is_multiple_of(SPLIT_EVERY),
                 });
-                written[li].push((frame, name));
+                written[li].push(Picked {
+                    frame,
+                    name,
+                    mask_name,
+                    openings: mask_openings(&lens.tool, opening, confidence),
+                });
             }
         }
     }
@@ -608,8 +641,9 @@ fn pose_episode(
     }
     // Frames are in time order (the picks of increasing times).
     for (li, frames) in written.iter().enumerate() {
-        let indices: Vec<usize> = frames.iter().map(|f| f.0).collect();
-        let view = lenses[li].view.key();
+        let indices: Vec<usize> = frames.iter().map(|f| f.frame).collect();
+        let lens = &lenses[li];
+        let view = lens.view.key();
         super::video::for_each_pick(
             &streams[li].source,
             &indices,
@@ -623,13 +657,44 @@ fn pose_episode(
                         frame.height as u32,
                         image::ExtendedColorType::Rgb8,
                     )
-                    .map_err(|e| export_err(format!("cannot encode {}: {e}", frames[k].1)))?;
-                write_atomic(&dir.join(IMAGES_DIR).join(&frames[k].1), &png)?;
+                    .map_err(|e| export_err(format!("cannot encode {}: {e}", frames[k].name)))?;
+                write_atomic(&dir.join(IMAGES_DIR).join(&frames[k].name), &png)?;
+                let solids: Vec<_> = frames[k]
+                    .openings
+                    .iter()
+                    .flat_map(|&o| lens.tool.solids(o))
+                    .collect();
+                let mask = lens.masker.mask(&solids);
+                let mut png = Vec::new();
+                image::codecs::png::PngEncoder::new(&mut png)
+                    .write_image(
+                        mask.as_raw(),
+                        mask.width(),
+                        mask.height(),
+                        image::ExtendedColorType::L8,
+                    )
+                    .map_err(|e| {
+                        export_err(format!("cannot encode {}: {e}", frames[k].mask_name))
+                    })?;
+                write_atomic(&dir.join(IMAGES_DIR).join(&frames[k].mask_name), &png)?;
                 Ok(())
             },
         )?;
     }
     Ok((times.len(), unposed))
+}
+
+/// A sampled frame that got a pose.
+#[derive(Clone)]
+struct Picked {
+    /// Index in the lens's stream.
+    frame: usize,
+    /// Image name under `images/`.
+    name: String,
+    /// Mask name under `images/`.
+    mask_name: String,
+    /// Openings whose jaws the mask covers.
+    openings: Vec<f64>,
 }
 
 /// The map features seen in a frame that is one of a map's keyframes: `(pixel in COLMAP's
@@ -867,6 +932,7 @@ fn write_nerfstudio(scene: &Scene, dir: &Path) -> Result<()> {
             .collect();
         let mut frame = json!({
             "file_path": format!("{IMAGES_DIR}/{}", img.name),
+            "mask_path": format!("{IMAGES_DIR}/{}", img.mask_name),
             "transform_matrix": rows,
             "colmap_im_id": img.id,
         });
