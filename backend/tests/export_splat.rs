@@ -21,10 +21,11 @@ use kiwi_backend::export::mask::{IGNORE, KEEP, LensMasker};
 use kiwi_backend::export::splat::{
     COLMAP_MODEL_DIR, MASK_SUFFIX, PIXEL_CENTRE_OFFSET, SPLIT_EVERY, TEST_LIST,
 };
-use kiwi_backend::export::{ExportFormat, ExportOptions, export, read_trajectory};
+use kiwi_backend::export::{ExportFormat, ExportOptions, WristTrajectory, export, read_trajectory};
+use kiwi_backend::formats::calibration::readout_for;
 use kiwi_core::camera::CameraModel;
 use kiwi_core::geometry::Pose;
-use kiwi_core::layout::ToolKind;
+use kiwi_core::layout::{Side, ToolKind};
 use kiwi_core::tool::ToolDefinition;
 
 use synthetic::{FEATURE_NOISE_PX, LANDMARKS_PER_KEYFRAME, Synthetic, camera_time, f64s};
@@ -113,8 +114,9 @@ fn parse_name(name: &str) -> (usize, String, usize) {
     )
 }
 
-/// The pipeline outputs' pose of an exported image: the trajectory row of its front frame
-/// (the rear lens is exposed with it), through the unit's `front_from_rear` for a rear image.
+/// The pipeline outputs' pose of an exported image: its front frame's trajectory at the
+/// frame's centre-row exposure (half the recording mode's readout after the row's time; the
+/// rear lens is exposed with it), through the unit's `front_from_rear` for a rear image.
 fn expected_scene_from_cam(root: &Path, name: &str) -> Pose {
     let cals = synthetic::scene_calibrations(SPEC.width);
     let (c, lens, frame) = parse_name(name);
@@ -122,9 +124,21 @@ fn expected_scene_from_cam(root: &Path, name: &str) -> Pose {
     let rows = read_trajectory(&root.join(format!("episodes/ep0/out/{camera}.csv"))).unwrap();
     let row = &rows[frame];
     assert!((row.t_camera - camera_time(c, frame)).abs() < 1e-6);
+    let readout = readout_for(&cals[c], synthetic::MODE, synthetic::RATE).unwrap();
+    assert!(
+        readout > 0.01,
+        "the simulated X5 reads a 30 fps frame out in ~15 ms"
+    );
+    let t = row.t_session.unwrap() + readout / 2.0;
+    let wrist = WristTrajectory {
+        side: [Side::Left, Side::Right][c],
+        tool: ToolKind::Chopstick,
+        rows,
+    };
+    let front = wrist.sample(t).unwrap().scene_from_front_cam;
     match lens.as_str() {
-        "front" => row.scene_from_front_cam,
-        _ => row.scene_from_front_cam * synthetic::front_from_rear(&cals[c]),
+        "front" => front,
+        _ => front * synthetic::front_from_rear(&cals[c]),
     }
 }
 
@@ -291,6 +305,30 @@ fn colmap_export_reads_back_with_pycolmap() {
         errors[errors.len() - 1]
     );
     assert!(median < MEDIAN_REPROJECTION_PX, "median {median} px");
+    // Each point takes the colour its exported images show at its observations (the synthetic
+    // rear frames are one grey level each); a point no exported image observes stays grey.
+    let mut coloured = 0;
+    for (pid, p) in model["colours"].as_object().unwrap() {
+        let rgb = f64s(&p["rgb"]);
+        let seen: Vec<f64> = p["images"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|n| {
+                let (c, lens, frame) = parse_name(n.as_str().unwrap());
+                assert_eq!(lens, "rear");
+                f64::from(synthetic::grey(c, frame).wrapping_add(1))
+            })
+            .collect();
+        let want = if seen.is_empty() {
+            128.0
+        } else {
+            coloured += 1;
+            (seen.iter().sum::<f64>() / seen.len() as f64).round()
+        };
+        assert_eq!(rgb, vec![want; 3], "point {pid}");
+    }
+    assert_eq!(coloured, rows * LANDMARKS_PER_KEYFRAME);
     let worst = errors[errors.len() - 1];
     let bound = FEATURE_NOISE_PX * std::f64::consts::SQRT_2 + REPROJECTION_SLACK_PX;
     assert!(

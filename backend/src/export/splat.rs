@@ -4,11 +4,13 @@
 //! the scene frame as initial points. Written as a COLMAP text model (3DGUT, gsplat) or a
 //! nerfstudio `transforms.json` (nerfstudio, brush).
 //!
-//! Poses: a front image is posed by the outputs' `scene_from_front_cam` at its frame time (the
-//! outputs pair each front frame's timestamp, its first row's exposure, with the fused pose at
-//! that time); any
-//! other lens of the unit by the same trajectory at its own frame time shifted by the lenses'
-//! time-shift difference, composed with `front_from_lens = front_from_imu · lens_from_imu⁻¹`.
+//! Poses: an image is posed at its centre row's exposure, the rolling-shutter frame's one
+//! global-shutter stand-in: its frame timestamp (the first row's exposure, where the outputs
+//! pair each front frame with its fused pose) plus half the recording mode's readout from the
+//! unit's calibration. A front image takes the outputs' `scene_from_front_cam` interpolated to
+//! that time; any other lens of the unit the same trajectory at its own time shifted by the
+//! lenses' time-shift difference, composed with `front_from_lens = front_from_imu ·
+//! lens_from_imu⁻¹`.
 //! Lenses of one unit exposed together are one rig frame, so front and rear stay one rigid body.
 //! The head camera has no pose in the outputs and is not exported.
 //!
@@ -36,6 +38,7 @@ use super::{
     export_err, resolve_views, source_rates,
 };
 use crate::error::{BackendError, Result};
+use crate::formats::calibration::readout_for;
 use crate::outputs::SupportClass;
 use crate::pipeline::graph::MapName;
 use crate::pipeline::stages::map_in_scene;
@@ -57,7 +60,7 @@ const RIG_SYNC_TOL_S: f64 = 5e-4;
 const REFIT_SAMPLES: usize = 400;
 /// COLMAP and nerfstudio put the first pixel's centre at 0.5; KIWI at 0.
 pub const PIXEL_CENTRE_OFFSET: f64 = 0.5;
-/// Colour of the initial points (the maps store no colour): mid grey.
+/// Colour of an initial point no exported image observes (the maps store no colour): mid grey.
 const POINT_GREY: u8 = 128;
 /// Folder of the exported images.
 pub const IMAGES_DIR: &str = "images";
@@ -227,6 +230,8 @@ struct Lens {
     shift_from_front_s: f64,
     /// The unit's tool (the parts masked out of its images).
     tool: ToolDefinition,
+    /// The unit's calibration (its recording modes' readout times).
+    calibration: UnitCalibration,
     /// Per-pixel rays for the masks.
     masker: LensMasker,
 }
@@ -265,6 +270,8 @@ struct ScenePoint {
     /// `(image id, index in the image's points2d)`.
     track: Vec<(u32, usize)>,
     error_px: f64,
+    /// Mean colour of its observations in the exported images; grey when none was exported.
+    rgb: [u8; 3],
 }
 
 /// Everything a scene export writes.
@@ -274,6 +281,8 @@ struct Scene {
     frames: Vec<RigFrame>,
     images: Vec<SceneImage>,
     points: BTreeMap<u64, ScenePoint>,
+    /// Per point id: the summed RGB of its observations in the written images and their count.
+    colour_sums: BTreeMap<u64, ([u64; 3], u64)>,
 }
 
 #[derive(Serialize)]
@@ -332,11 +341,21 @@ pub fn write(
         frames: Vec::new(),
         images: Vec::new(),
         points: BTreeMap::new(),
+        colour_sums: BTreeMap::new(),
     };
     let mut group = 0usize;
     let mut unposed = 0usize;
     for ep in &exp.episodes {
-        let (groups, skipped) = pose_episode(ep, &lenses, &mut scene, &maps, rate_hz, group, dir)?;
+        let (groups, skipped) = pose_episode(
+            ep,
+            &lenses,
+            &mut scene,
+            &maps,
+            rate_hz,
+            group,
+            dir,
+            &mut report.notes,
+        )?;
         group += groups;
         unposed += skipped;
         report.exported.push(ep.name.clone());
@@ -465,6 +484,7 @@ fn open_lenses(exp: &SessionExport, views: &[View]) -> Result<Vec<Lens>> {
                 front_from_lens,
                 shift_from_front_s: shift - front_shift,
                 tool: tool.clone(),
+                calibration: cal.clone(),
                 masker,
             });
         }
@@ -522,8 +542,31 @@ fn load_maps(exp: &SessionExport) -> Result<Vec<SceneMap>> {
     Ok(maps)
 }
 
+/// Time from a lens frame's timestamp (its first row) to its centre row's exposure in an
+/// episode (s): half the rolling readout of the recording mode its camera recorded in, from the
+/// unit's calibration; 0, with a note, when the calibration knows no readout for that mode.
+fn exposure_centre_delay(
+    ep: &super::EpisodeOutputs,
+    lens: &Lens,
+    notes: &mut Vec<String>,
+) -> Result<f64> {
+    let meta = EpisodeLayout::new(&ep.dir).read_meta(&lens.view.camera)?;
+    match readout_for(&lens.calibration, &meta.mode, meta.fps) {
+        Some(readout) => Ok(readout / 2.0),
+        None => {
+            notes.push(format!(
+                "episode {}: {}.{}: the calibration gives no readout time for recording mode {} \
+                 ({} fps); its images are posed at their first row (global shutter)",
+                ep.name, lens.view.camera, lens.view.lens, meta.mode, meta.fps
+            ));
+            Ok(0.0)
+        }
+    }
+}
+
 /// Sample, pose and write the images of one episode; returns the time groups used and the
 /// sampled frames left out for want of a pose.
+#[allow(clippy::too_many_arguments)]
 fn pose_episode(
     ep: &super::EpisodeOutputs,
     lenses: &[Lens],
@@ -532,6 +575,7 @@ fn pose_episode(
     rate_hz: f64,
     first_group: usize,
     dir: &Path,
+    notes: &mut Vec<String>,
 ) -> Result<(usize, usize)> {
     let streams = lenses
         .iter()
@@ -541,6 +585,10 @@ fn pose_episode(
         s.source
             .check_calibration_size(&l.model, &l.calibration_path, None)?;
     }
+    let centre_delays = lenses
+        .iter()
+        .map(|l| exposure_centre_delay(ep, l, notes))
+        .collect::<Result<Vec<f64>>>()?;
     let rate = choose_rate(Some(rate_hz), &source_rates(ep, &streams), &ep.name)?;
     let grid = episode_grid(ep, &streams, rate)?;
     let times = grid.times();
@@ -563,12 +611,14 @@ fn pose_episode(
             };
             let rig_lenses = &scene.rigs[r].lenses;
             let ref_lens = &lenses[rig_lenses[0]];
-            // Each lens's frame, at the front-lens time its exposure corresponds to.
+            // Each lens's frame, at the front-lens time of its centre row's exposure.
             let mut shots: Vec<(usize, usize, f64)> = rig_lenses
                 .iter()
                 .map(|&li| {
                     let frame = picks[li][k];
-                    let t = streams[li].session_times[frame] + lenses[li].shift_from_front_s;
+                    let t = streams[li].session_times[frame]
+                        + lenses[li].shift_from_front_s
+                        + centre_delays[li];
                     (li, frame, t)
                 })
                 .collect();
@@ -624,6 +674,7 @@ fn pose_episode(
                 });
                 written[li].push(Picked {
                     frame,
+                    image: scene.images.len() - 1,
                     name,
                     mask_name,
                     openings: mask_openings(&lens.tool, opening, confidence),
@@ -640,6 +691,8 @@ fn pose_episode(
         )));
     }
     // Frames are in time order (the picks of increasing times).
+    let images = &scene.images;
+    let colour_sums = &mut scene.colour_sums;
     for (li, frames) in written.iter().enumerate() {
         let indices: Vec<usize> = frames.iter().map(|f| f.frame).collect();
         let lens = &lenses[li];
@@ -649,10 +702,25 @@ fn pose_episode(
             &indices,
             |m| export_err(format!("episode {}: view {view}: {m}", ep.name)),
             |k, frame| {
+                let rgb = frame.to_rgb();
+                // The map points this image observes take their colour from it.
+                for (px, id) in &images[frames[k].image].points2d {
+                    let x = (px[0] - PIXEL_CENTRE_OFFSET).round();
+                    let y = (px[1] - PIXEL_CENTRE_OFFSET).round();
+                    if x < 0.0 || y < 0.0 || x >= frame.width as f64 || y >= frame.height as f64 {
+                        continue;
+                    }
+                    let at = (y as usize * frame.width + x as usize) * 3;
+                    let e = colour_sums.entry(*id).or_insert(([0; 3], 0));
+                    for c in 0..3 {
+                        e.0[c] += u64::from(rgb[at + c]);
+                    }
+                    e.1 += 1;
+                }
                 let mut png = Vec::new();
                 image::codecs::png::PngEncoder::new(&mut png)
                     .write_image(
-                        &frame.to_rgb(),
+                        &rgb,
                         frame.width as u32,
                         frame.height as u32,
                         image::ExtendedColorType::Rgb8,
@@ -689,6 +757,8 @@ fn pose_episode(
 struct Picked {
     /// Index in the lens's stream.
     frame: usize,
+    /// Index in the scene's images.
+    image: usize,
     /// Image name under `images/`.
     name: String,
     /// Mask name under `images/`.
@@ -740,6 +810,12 @@ fn fill_points(scene: &mut Scene, maps: &[SceneMap]) {
                     xyz: *p,
                     track: Vec::new(),
                     error_px: 0.0,
+                    rgb: scene
+                        .colour_sums
+                        .get(&(m.first_id + i as u64))
+                        .map_or([POINT_GREY; 3], |(sum, n)| {
+                            sum.map(|c| (c as f64 / *n as f64).round() as u8)
+                        }),
                 },
             );
         }
@@ -887,8 +963,8 @@ fn write_colmap(scene: &Scene, dir: &Path) -> Result<()> {
     for (id, p) in &scene.points {
         let _ = write!(
             points,
-            "{id} {} {} {} {POINT_GREY} {POINT_GREY} {POINT_GREY} {}",
-            p.xyz.x, p.xyz.y, p.xyz.z, p.error_px
+            "{id} {} {} {} {} {} {} {}",
+            p.xyz.x, p.xyz.y, p.xyz.z, p.rgb[0], p.rgb[1], p.rgb[2], p.error_px
         );
         for (image, k) in &p.track {
             let _ = write!(points, " {image} {k}");
@@ -977,8 +1053,8 @@ fn write_nerfstudio(scene: &Scene, dir: &Path) -> Result<()> {
     for p in scene.points.values() {
         let _ = writeln!(
             ply,
-            "{} {} {} {POINT_GREY} {POINT_GREY} {POINT_GREY}",
-            p.xyz.x, p.xyz.y, p.xyz.z
+            "{} {} {} {} {} {}",
+            p.xyz.x, p.xyz.y, p.xyz.z, p.rgb[0], p.rgb[1], p.rgb[2]
         );
     }
     write_text(&dir.join(PLY_FILE), &ply)

@@ -68,7 +68,12 @@ for fid, frame in rec.frames.items():
     }
 
 errors = []
+colours = {}
 for pid, point in rec.points3D.items():
+    colours[str(pid)] = {
+        "rgb": [int(c) for c in point.color],
+        "images": [rec.images[el.image_id].name for el in point.track.elements],
+    }
     for el in point.track.elements:
         img = rec.images[el.image_id]
         proj = img.project_point(point.xyz)
@@ -85,4 +90,5 @@ print(json.dumps({
     "frames": frames,
     "points": len(rec.points3D),
     "errors": errors,
+    "colours": colours,
 }))

@@ -37,6 +37,8 @@ pub struct Synthetic {
 
 /// Front-lens rate of the synthetic cameras (Hz).
 pub const RATE: f64 = 30000.0 / 1001.0;
+/// The cameras' recording mode in `meta.json` (the calibration's 29.97 Hz mode by its rate).
+pub const MODE: &str = "30fps";
 /// Camera clocks: (name, first frame time on the camera clock, offset, drift ppm).
 pub const CAMERAS: [(&str, f64, f64, f64); 2] =
     [("left", 0.005, 0.0, 0.0), ("right", 0.011, 0.0371, 40.0)];
@@ -95,7 +97,7 @@ fn write_episode(spec: &Synthetic, root: &Path, name: &str, verdict: Verdict) {
             camera: camera.to_string(),
             unit_id: format!("X5-{camera}"),
             camera_model: "Insta360 X5".into(),
-            mode: "30fps".into(),
+            mode: MODE.into(),
             fps: RATE,
             lenses: lenses.clone(),
             audio_rate_hz: 48000,
@@ -348,10 +350,14 @@ pub fn add_scene_inputs(spec: &Synthetic, root: &Path, rate: f64) {
     let metric = rear_metric();
     let mut map = VisualMap::new("left", "rear", "ep0", &rear_cam);
     let (t0, rows) = expected_grid(spec, rate);
+    let centre_delay =
+        kiwi_backend::formats::calibration::readout_for(left, MODE, RATE).unwrap() / 2.0;
     for k in 0..rows {
         let frame = nearest_frame(spec, 0, t0 + k as f64 / rate);
         let t_cam = camera_time(0, frame);
-        let scene_from_rear = truth_tip(0, session_time(0, t_cam)) * front_from_rear;
+        // Seen as the export poses the image: at its centre row's exposure.
+        let t = session_time(0, t_cam) + centre_delay;
+        let scene_from_rear = truth_tip(0, t) * front_from_rear;
         let mut features = Vec::new();
         for j in 0..LANDMARKS_PER_KEYFRAME {
             let theta = 0.2 + 1.2 * (j as f64 / LANDMARKS_PER_KEYFRAME as f64);
