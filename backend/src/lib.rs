@@ -16,6 +16,7 @@ pub mod formats;
 pub mod frames;
 pub mod fusion;
 pub mod gripper;
+pub mod head;
 pub mod ingest;
 pub mod inspect;
 pub mod metric;

@@ -207,8 +207,25 @@ impl TagDetector {
         let Some(grey) = view.grey(image) else {
             return Ok(None);
         };
-        let side = view.side() as i32;
-        let mat = Mat::new_rows_cols_with_data(side, side, &grey).map_err(cv_err)?;
+        let side = view.side();
+        Ok(self
+            .detect_grey(&grey, side, side)?
+            .map(|c| c.map(|p| view.bearing(p.x, p.y))))
+    }
+
+    /// The tag's corners (pixels of `grey`, `width × height` 8-bit, rows top to bottom) in
+    /// OpenCV's order, or `None` when it is not seen.
+    pub fn detect_grey(
+        &self,
+        grey: &[u8],
+        width: usize,
+        height: usize,
+    ) -> Result<Option<[Point2<f64>; 4]>> {
+        if grey.len() != width * height || width == 0 {
+            return Ok(None);
+        }
+        let mat =
+            Mat::new_rows_cols_with_data(height as i32, width as i32, grey).map_err(cv_err)?;
         let dict = opencv::aruco::get_predefined_dictionary(self.dict).map_err(cv_err)?;
         let mut params = opencv::aruco::DetectorParameters::create().map_err(cv_err)?;
         params.set_corner_refinement_method(opencv::aruco::CORNER_REFINE_SUBPIX);
@@ -225,9 +242,9 @@ impl TagDetector {
             if c.len() != 4 {
                 continue;
             }
-            let mut out = [Vector3::zeros(); 4];
+            let mut out = [Point2::origin(); 4];
             for (o, p) in out.iter_mut().zip(c.iter()) {
-                *o = view.bearing(f64::from(p.x), f64::from(p.y));
+                *o = Point2::new(f64::from(p.x), f64::from(p.y));
             }
             return Ok(Some(out));
         }
