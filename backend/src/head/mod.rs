@@ -2,3 +2,4 @@
 //! into scene-frame observations of the head.
 
 pub mod marker;
+pub mod track;
