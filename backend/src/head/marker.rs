@@ -288,6 +288,16 @@ impl MarkerFinder {
         Ok(Some(self.refine(image, &rough)?.unwrap_or(rough)))
     }
 
+    /// Where in the frame's readout the marker was exposed: its centre's image row over the
+    /// last row (0 at the top). A sighting's time on a rolling-shutter frame is the frame's
+    /// timestamp (its first row) plus this fraction of the readout time.
+    pub fn row_fraction(&self, corners: &[Vector3<f64>; 4]) -> Option<f64> {
+        let centre = corners.iter().sum::<Vector3<f64>>().try_normalize(1e-9)?;
+        let (_, h) = self.camera.resolution();
+        let p = self.camera.project(&centre)?;
+        Some((p.y / f64::from(h.max(2) - 1)).clamp(0.0, 1.0))
+    }
+
     /// Corners found again on a view aimed at the rough ones.
     fn refine(
         &self,
@@ -456,6 +466,28 @@ mod tests {
                 "{model:?}: worst {:.2} mm, {:.3} deg",
                 worst.0 * 1e3,
                 worst.1.to_degrees()
+            );
+        }
+    }
+
+    #[test]
+    fn the_row_fraction_is_the_marker_centre_row() {
+        let unit = SimUnit::x5("H", 5, 321, LensModel::Kb4).unwrap();
+        let camera = unit.lenses[1].camera.clone();
+        let finder = MarkerFinder::new(camera.clone(), "4x4_50", ID).unwrap();
+        for (theta, phi) in [(0.0, 0.0), (0.8, std::f64::consts::FRAC_PI_2), (0.8, -1.2)] {
+            let pose = placed(0.5, theta, phi, 0.3, 0.1);
+            let corners =
+                marker_corners(0.08).map(|m| (pose * nalgebra::Point3::from(m)).coords.normalize());
+            let centre = camera
+                .project(&(pose.translation.vector.normalize()))
+                .unwrap();
+            let got = finder.row_fraction(&corners).unwrap();
+            // The corners' mean bearing is within a fraction of a pixel of the centre's.
+            assert!(
+                (got * 320.0 - centre.y).abs() < 0.5,
+                "{got} vs row {}",
+                centre.y
             );
         }
     }
