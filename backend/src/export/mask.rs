@@ -129,6 +129,8 @@ impl LensMasker {
             .iter()
             .map(|&i| if i { IGNORE } else { KEEP })
             .collect();
+        // One value per pixel of this lens, so the buffer always fits; the fallback (everything
+        // ignored) is never taken.
         GrayImage::from_raw(self.width as u32, self.height as u32, pixels)
             .unwrap_or_else(|| GrayImage::new(self.width as u32, self.height as u32))
     }

@@ -267,10 +267,18 @@ impl MarkerFinder {
 
     /// The marker's corners as bearings (lens frame, OpenCV's corner order), or `None` when it
     /// is not seen: found on the fisheye image, then refined on a perspective view aimed at it.
+    /// A frame of another size than the lens's calibration is an error.
     pub fn find(&self, image: &ImageView<'_>) -> Result<Option<[Vector3<f64>; 4]>> {
         let (w, h) = self.camera.resolution();
         if image.width != w as usize || image.height != h as usize {
-            return Ok(None);
+            return Err(BackendError::Input {
+                path: "rear lens frame".into(),
+                message: format!(
+                    "the frame is {}x{} px but the lens calibration is for {w}x{h} px; use the \
+                     calibration made at the stream's resolution",
+                    image.width, image.height
+                ),
+            });
         }
         let Some(pixels) = self
             .detector
@@ -490,6 +498,16 @@ mod tests {
                 centre.y
             );
         }
+        // A frame of another size is refused, naming both sizes.
+        let data = vec![0u8; 100 * 100 * 3];
+        let small = ImageView {
+            width: 100,
+            height: 100,
+            data: &data,
+            order: ChannelOrder::Rgb,
+        };
+        let err = finder.find(&small).unwrap_err().to_string();
+        assert!(err.contains("100x100") && err.contains("321x321"), "{err}");
     }
 
     #[test]

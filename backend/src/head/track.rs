@@ -5,7 +5,6 @@
 //! a gap: nothing is made up.
 
 use nalgebra::{Matrix2, Vector2, Vector3};
-use serde::Serialize;
 
 use kiwi_core::geometry::Pose;
 use kiwi_core::layout::Side;
@@ -67,12 +66,11 @@ impl Default for TrackOptions {
 }
 
 /// One sample of the head's track.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub struct HeadSample {
     /// Session time (s).
     pub t_session: f64,
     /// `scene_from_marker`; `None` in a gap.
-    #[serde(skip)]
     pub scene_from_marker: Option<Pose>,
     /// Observations that shaped the sample (after outlier rejection); in a gap, those too few
     /// to make one.
