@@ -10,7 +10,7 @@ use std::time::Instant;
 
 use nalgebra::{Rotation3, Translation3, UnitQuaternion, Vector3};
 
-use kiwi_backend::gripper::{ChannelOrder, ImageView};
+use kiwi_backend::frames::ColorImage;
 use kiwi_backend::head::marker::{MarkerFinder, resolve, square_poses};
 use kiwi_core::geometry::Pose;
 use kiwi_fixtures::markers::{aruco_texture, aruco_texture_side};
@@ -95,15 +95,11 @@ fn main() {
     let finder = MarkerFinder::new(camera, "4x4_50", 3).unwrap();
     let mut timings = [(0.0f64, 0usize, 0usize); 2];
     for (with_marker, img) in &frames {
-        let view = ImageView {
-            width: img.width() as usize,
-            height: img.height() as usize,
-            data: img.as_raw(),
-            order: ChannelOrder::Rgb,
-        };
+        let frame = ColorImage::from_rgb(img.width() as usize, img.height() as usize, img.as_raw())
+            .unwrap();
         let t = Instant::now();
         let posed = finder
-            .find(&view)
+            .find(&frame)
             .unwrap()
             .and_then(|c| square_poses(&c, 0.08).unwrap())
             .is_some_and(|p| resolve(&p, None).pose().is_some());

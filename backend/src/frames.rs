@@ -69,6 +69,19 @@ impl ColorImage {
         GrayImage::new(self.width as u32, self.height as u32, data)
     }
 
+    /// A frame from pixels red first (`width · height · 3` bytes), the inverse of
+    /// [`Self::to_rgb`]; `None` when the buffer does not hold that many bytes.
+    pub fn from_rgb(width: usize, height: usize, rgb: &[u8]) -> Option<Self> {
+        (rgb.len() == width * height * 3).then(|| Self {
+            width,
+            height,
+            bgr: rgb
+                .chunks_exact(3)
+                .flat_map(|p| [p[2], p[1], p[0]])
+                .collect(),
+        })
+    }
+
     /// The pixels red first (`width · height · 3` bytes), as image files and datasets store
     /// them.
     pub fn to_rgb(&self) -> Vec<u8> {

@@ -10,7 +10,6 @@ use std::path::Path;
 use nalgebra::{Quaternion, Translation3, UnitQuaternion};
 
 use kiwi_backend::frames::FrameSource;
-use kiwi_backend::gripper::{ChannelOrder, ImageView};
 use kiwi_backend::head::marker::{MarkerFinder, Resolved, resolve, square_poses};
 use kiwi_backend::head::track::{HeadObservation, TrackOptions, fuse, observe};
 use kiwi_core::artifact::UnitCalibration;
@@ -94,13 +93,7 @@ fn the_head_track_from_both_rear_lenses_matches_the_truth() {
         for (i, (t_session, scene_from_rear)) in rear_truth.iter().enumerate() {
             frames += 1;
             let image = source.load_color(i).unwrap();
-            let view = ImageView {
-                width: image.width,
-                height: image.height,
-                data: &image.bgr,
-                order: ChannelOrder::Bgr,
-            };
-            let Some(corners) = finder.find(&view).unwrap() else {
+            let Some(corners) = finder.find(&image).unwrap() else {
                 continue;
             };
             found += 1;

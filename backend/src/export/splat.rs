@@ -38,7 +38,7 @@ use super::{
     export_err, resolve_views, source_rates,
 };
 use crate::error::{BackendError, Result};
-use crate::formats::calibration::readout_for;
+use crate::formats::calibration::exposure_centre_delay;
 use crate::outputs::SupportClass;
 use crate::pipeline::graph::MapName;
 use crate::pipeline::stages::map_in_scene;
@@ -545,14 +545,14 @@ fn load_maps(exp: &SessionExport) -> Result<Vec<SceneMap>> {
 /// Time from a lens frame's timestamp (its first row) to its centre row's exposure in an
 /// episode (s): half the rolling readout of the recording mode its camera recorded in, from the
 /// unit's calibration; 0, with a note, when the calibration knows no readout for that mode.
-fn exposure_centre_delay(
+fn lens_centre_delay(
     ep: &super::EpisodeOutputs,
     lens: &Lens,
     notes: &mut Vec<String>,
 ) -> Result<f64> {
     let meta = EpisodeLayout::new(&ep.dir).read_meta(&lens.view.camera)?;
-    match readout_for(&lens.calibration, &meta.mode, meta.fps) {
-        Some(readout) => Ok(readout / 2.0),
+    match exposure_centre_delay(&lens.calibration, &meta.mode, meta.fps) {
+        Some(delay) => Ok(delay),
         None => {
             notes.push(format!(
                 "episode {}: {}.{}: the calibration gives no readout time for recording mode {} \
@@ -587,7 +587,7 @@ fn pose_episode(
     }
     let centre_delays = lenses
         .iter()
-        .map(|l| exposure_centre_delay(ep, l, notes))
+        .map(|l| lens_centre_delay(ep, l, notes))
         .collect::<Result<Vec<f64>>>()?;
     let rate = choose_rate(Some(rate_hz), &source_rates(ep, &streams), &ep.name)?;
     let grid = episode_grid(ep, &streams, rate)?;

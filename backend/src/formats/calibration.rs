@@ -78,6 +78,13 @@ pub fn readout_for(calibration: &UnitCalibration, mode: &str, fps: f64) -> Optio
         .and_then(|m| m.readout_time_s)
 }
 
+/// Time from a frame's timestamp (its first row) to its centre row's exposure (s): half the
+/// readout of the recording mode (see [`readout_for`]); `None` when the calibration knows no
+/// readout for it.
+pub fn exposure_centre_delay(calibration: &UnitCalibration, mode: &str, fps: f64) -> Option<f64> {
+    readout_for(calibration, mode, fps).map(|r| 0.5 * r)
+}
+
 /// IMU parameters from explicit densities, else the calibration's, else an error naming both.
 pub fn imu_params(
     explicit: Option<[f64; 4]>,

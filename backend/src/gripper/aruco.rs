@@ -7,12 +7,13 @@
 //! pinhole coordinates of the fisheye image.
 
 use kiwi_core::camera::{Camera, CameraModel};
-use nalgebra::{Matrix3, Point2, Rotation3, Unit, Vector3};
+use nalgebra::{Point2, Rotation3, Unit, Vector3};
 use opencv::core::{Mat, Point2f, Vector};
 use opencv::prelude::*;
 
 use super::estimate::{ChannelOrder, ImageView};
 use crate::error::{BackendError, Result};
+use crate::vision::geometry::aimed_at;
 
 /// Largest side of the virtual view (px): bounds memory and detection time.
 const MAX_VIEW_SIDE: usize = 640;
@@ -53,15 +54,8 @@ impl TagView {
                 "tag view half-angle {half_angle} rad is out of range: check marker.size_m"
             )));
         }
-        // Any x perpendicular to z; the detector does not care about the view's roll.
-        let helper = if z.x.abs() < 0.9 {
-            Vector3::x()
-        } else {
-            Vector3::y()
-        };
-        let x = helper.cross(&z).normalize();
-        let y = z.cross(&x);
-        let front_from_view = Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[x, y, z]));
+        // The detector does not care about the view's roll.
+        let front_from_view = aimed_at(&z);
         let tan = half_angle.tan();
         let side = ((2.0 * tan * px_per_rad).ceil() as usize).clamp(MIN_VIEW_SIDE, MAX_VIEW_SIDE);
         let focal = side as f64 / (2.0 * tan);

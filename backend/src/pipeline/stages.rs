@@ -754,8 +754,9 @@ fn run_placement(env: &StageEnv<'_>, side: Side) -> Result<()> {
 /// calibration gives it; 0 for a global shutter or a mode without a known readout.
 fn exposure_centre_delay(ctx: &SessionContext, episode: &str, w: &WristContext) -> Result<f64> {
     let meta = ctx.episode(episode).read_meta(w.camera)?;
-    let readout = crate::formats::calibration::readout_for(&w.calibration, &meta.mode, meta.fps);
-    if readout.is_none() {
+    let delay =
+        crate::formats::calibration::exposure_centre_delay(&w.calibration, &meta.mode, meta.fps);
+    if delay.is_none() {
         tracing::warn!(
             "{}: no readout time for recording mode {} ({} fps): frames are treated as \
              global-shutter exposures",
@@ -764,7 +765,7 @@ fn exposure_centre_delay(ctx: &SessionContext, episode: &str, w: &WristContext) 
             meta.fps
         );
     }
-    Ok(0.5 * readout.unwrap_or(0.0))
+    Ok(delay.unwrap_or(0.0))
 }
 
 /// The frozen scene reference of a wrist, from the session's metric and placement stages.

@@ -33,6 +33,18 @@ const REFINE_STEP_TOLERANCE: f64 = 1e-12;
 // Residuals on the unit sphere
 // ---------------------------------------------------------------------------------------------
 
+/// A rotation whose third column is the unit `z` and whose first two are
+/// [`tangent_basis`]'s: `source_from_view` of a virtual camera aimed along `z` (its roll is
+/// arbitrary but fixed).
+pub fn aimed_at(z: &Vector3<f64>) -> nalgebra::Rotation3<f64> {
+    let t = tangent_basis(z);
+    nalgebra::Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[
+        t.row(0).transpose(),
+        t.row(1).transpose(),
+        *z,
+    ]))
+}
+
 /// An orthonormal basis `[e1 e2]` of the tangent plane of the unit sphere at `bearing`.
 pub fn tangent_basis(bearing: &Vector3<f64>) -> Matrix2x3<f64> {
     // Cross with the axis least aligned with the bearing: well conditioned for any direction.

@@ -351,7 +351,7 @@ pub fn add_scene_inputs(spec: &Synthetic, root: &Path, rate: f64) {
     let mut map = VisualMap::new("left", "rear", "ep0", &rear_cam);
     let (t0, rows) = expected_grid(spec, rate);
     let centre_delay =
-        kiwi_backend::formats::calibration::readout_for(left, MODE, RATE).unwrap() / 2.0;
+        kiwi_backend::formats::calibration::exposure_centre_delay(left, MODE, RATE).unwrap();
     for k in 0..rows {
         let frame = nearest_frame(spec, 0, t0 + k as f64 / rate);
         let t_cam = camera_time(0, frame);
