@@ -1,7 +1,10 @@
 //! An episode's deliverables (`episodes/<ep>/out/`): per wrist, the tool-tip and front-camera
 //! trajectories on the session timeline at every front frame with their marginal sigmas, the
 //! support class and the gripper opening; TUM files for trajectory tools such as evo; and
-//! `quality.json`, the record of how far to trust it all with the verdict.
+//! `quality.json`, the record of how far to trust it all with the verdict. With a head camera,
+//! the head stage's `head.csv` (the hat marker's track and the head camera's pose on it, 30 Hz
+//! on the session timeline, empty in gaps), `head.tum` (the head camera) and `head_camera.csv`
+//! (the head camera's pose at each of its frames).
 //!
 //! `<wrist>.csv` columns:
 //!
@@ -31,10 +34,10 @@ use crate::formats::tables::FusedRow;
 use crate::fusion::FusionStatistics;
 use crate::observations::ObservationCounts;
 use crate::quality::{
-    SUSPECT_GRIPPER_FRACTION, SUSPECT_PLACEMENT_INLIER_FRACTION, SUSPECT_POSITION_SIGMA_M,
-    SUSPECT_RESIDUAL_P95_M, SUSPECT_SUPPORTED_FRACTION, SUSPECT_UNSUPPORTED_RUN_S, Thresholds,
-    UNUSABLE_POSITION_SIGMA_M, UNUSABLE_SUPPORTED_FRACTION, UNUSABLE_UNSUPPORTED_RUN_S, Verdict,
-    VerdictBuilder, longest_unsupported_run,
+    SUSPECT_GRIPPER_FRACTION, SUSPECT_HEAD_TRACKED_FRACTION, SUSPECT_PLACEMENT_INLIER_FRACTION,
+    SUSPECT_POSITION_SIGMA_M, SUSPECT_RESIDUAL_P95_M, SUSPECT_SUPPORTED_FRACTION,
+    SUSPECT_UNSUPPORTED_RUN_S, Thresholds, UNUSABLE_POSITION_SIGMA_M, UNUSABLE_SUPPORTED_FRACTION,
+    UNUSABLE_UNSUPPORTED_RUN_S, Verdict, VerdictBuilder, longest_unsupported_run,
 };
 use crate::sync::{CameraStatus, SyncResult};
 
@@ -169,6 +172,17 @@ pub struct EpisodeInputs {
     pub sync: SyncResult,
     /// Metric recovery of each map (`rear`, `front-left`, …).
     pub metric: BTreeMap<String, MetricFile>,
+    /// The head stage's files and record, when the session has a head camera.
+    pub head: Option<HeadOutputs>,
+}
+
+/// What the head stage hands the outputs: its files (published as they are) and its record.
+#[derive(Debug, Clone)]
+pub struct HeadOutputs {
+    /// `(file name, bytes)`: `head.csv`, `head.tum`, `head_camera.csv`.
+    pub files: Vec<(String, Vec<u8>)>,
+    /// The record, `quality.json`'s `head` section.
+    pub summary: crate::head::episode::HeadSummary,
 }
 
 /// A wrist's section of `quality.json`.
@@ -233,10 +247,13 @@ pub struct QualityRecord {
     pub metric: BTreeMap<String, MetricFile>,
     /// The episode whose recordings built the maps.
     pub map_episode: String,
+    /// The head's track and the head camera's poses (absent without a head camera).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub head: Option<crate::head::episode::HeadSummary>,
 }
 
 /// A camera-clock time on the session timeline (`None` when the camera is not on it).
-pub(crate) fn session_time(clock: Option<&crate::sync::CameraClock>, t: f64) -> Option<f64> {
+pub fn session_time(clock: Option<&crate::sync::CameraClock>, t: f64) -> Option<f64> {
     clock
         .filter(|c| c.status != CameraStatus::Unmatched)
         .and_then(|c| {
@@ -480,6 +497,25 @@ pub fn write_outputs(inputs: &EpisodeInputs, dir: &Path) -> Result<QualityRecord
         grade_wrist(&mut v, &w.camera, &q);
         wrists.insert(w.camera.clone(), q);
     }
+    if let Some(head) = &inputs.head {
+        for (name, bytes) in &head.files {
+            write_atomic(&dir.join(name), bytes)?;
+        }
+        let h = &head.summary;
+        if h.posed_fraction < SUSPECT_HEAD_TRACKED_FRACTION {
+            let sighted: usize = h.wrists.values().map(|c| c.accepted).sum();
+            let searched: usize = h.wrists.values().map(|c| c.frames).sum();
+            v.add(
+                Verdict::Suspect,
+                format!(
+                    "head: tracked on {:.1} % of the episode (< {:.0} %); the hat marker was \
+                     posed in {sighted} of {searched} rear frames",
+                    h.posed_fraction * 100.0,
+                    SUSPECT_HEAD_TRACKED_FRACTION * 100.0
+                ),
+            );
+        }
+    }
     let (verdict, reasons) = v.finish();
     let record = QualityRecord {
         schema_version: QUALITY_SCHEMA_VERSION,
@@ -491,6 +527,7 @@ pub fn write_outputs(inputs: &EpisodeInputs, dir: &Path) -> Result<QualityRecord
         sync: Some(inputs.sync.clone()),
         metric: inputs.metric.clone(),
         map_episode: inputs.map_episode.clone(),
+        head: inputs.head.as_ref().map(|h| h.summary.clone()),
     };
     crate::formats::results::write_json(&dir.join("quality.json"), &record)?;
     Ok(record)
@@ -518,5 +555,6 @@ pub fn failed_record(episode: &str, map_episode: &str, reasons: Vec<String>) -> 
         sync: None,
         metric: BTreeMap::new(),
         map_episode: map_episode.to_string(),
+        head: None,
     }
 }

@@ -53,6 +53,9 @@ pub const SUSPECT_RESIDUAL_P95_M: f64 = 0.02;
 pub const SUSPECT_PLACEMENT_INLIER_FRACTION: f64 = 0.5;
 /// Gripper openings measured on fewer than this fraction of frames are suspect.
 pub const SUSPECT_GRIPPER_FRACTION: f64 = 0.9;
+/// A head track posed on less than this fraction of the episode is suspect: the operator's
+/// head was out of both rear views (or the marker unreadable) most of the time.
+pub const SUSPECT_HEAD_TRACKED_FRACTION: f64 = 0.5;
 
 /// The thresholds, as recorded in every `quality.json`.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -75,6 +78,13 @@ pub struct Thresholds {
     pub suspect_placement_inlier_fraction: f64,
     /// [`SUSPECT_GRIPPER_FRACTION`].
     pub suspect_gripper_fraction: f64,
+    /// [`SUSPECT_HEAD_TRACKED_FRACTION`].
+    #[serde(default = "default_head_fraction")]
+    pub suspect_head_tracked_fraction: f64,
+}
+
+fn default_head_fraction() -> f64 {
+    SUSPECT_HEAD_TRACKED_FRACTION
 }
 
 impl Default for Thresholds {
@@ -89,6 +99,7 @@ impl Default for Thresholds {
             suspect_residual_p95_m: SUSPECT_RESIDUAL_P95_M,
             suspect_placement_inlier_fraction: SUSPECT_PLACEMENT_INLIER_FRACTION,
             suspect_gripper_fraction: SUSPECT_GRIPPER_FRACTION,
+            suspect_head_tracked_fraction: SUSPECT_HEAD_TRACKED_FRACTION,
         }
     }
 }

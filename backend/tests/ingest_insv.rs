@@ -202,6 +202,8 @@ fn session(dir: &Path, head: bool) -> PathBuf {
             calibration: "units/GO3-T1/2026-01-01".into(),
             marker_id: 3,
             marker_size_m: 0.08,
+            marker_dictionary: "4x4_50".into(),
+            mount: None,
         }),
         episodes: vec![EpisodeConfig {
             name: "ep000".into(),

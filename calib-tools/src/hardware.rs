@@ -365,6 +365,10 @@ pub fn generated_files(layout: &HardwareLayout) -> Result<Vec<(PathBuf, String)>
     for (name, text) in generated.tools {
         files.push((PathBuf::from(format!("hardware/tools/{name}.toml")), text));
     }
+    files.push((
+        PathBuf::from("hardware/head/hat.toml"),
+        generated.head_mount,
+    ));
     let bom = read_bom(&layout.bom())?;
     files.push((PathBuf::from("docs/hardware/bom.md"), bom_markdown(&bom)));
     let parts = read_parts(&layout.parts(), &layout.parts_dir())?;

@@ -10,10 +10,11 @@
 
 use std::path::Path;
 
-use nalgebra::{Matrix3, Vector3};
+use nalgebra::{Isometry3, Matrix3, Translation3, UnitQuaternion, Vector3};
 use serde::Deserialize;
 
 use crate::error::{CoreError, Result};
+use crate::head::{HEAD_MOUNT_SCHEMA_VERSION, HeadMount};
 use crate::layout::ToolKind;
 use crate::tool::{
     DotsDef, EncoderDef, HingeDef, JawsDef, MarkerDef, TOOL_SCHEMA_VERSION, ToolDefinition,
@@ -371,6 +372,8 @@ pub struct GeneratedHardware {
     pub params_scad: String,
     /// `hardware/tools/<name>.toml`, by tool name.
     pub tools: Vec<(String, String)>,
+    /// `hardware/head/hat.toml`: the hat's `marker_from_cam`.
+    pub head_mount: String,
 }
 
 fn invalid(field: &str, expected: &str, found: String) -> CoreError {
@@ -773,7 +776,27 @@ impl HardwareParams {
         }
     }
 
-    /// Generate `params.scad` and the tool definition files.
+    /// The hat's head mount: the marker is centred `tag_above_camera` above and
+    /// `tag_ahead_of_camera` ahead of the GO 3's lens, facing forward with its printed "up"
+    /// pointing up (a half turn about the camera's optical axis from the camera's axes).
+    pub fn head_mount(&self) -> HeadMount {
+        let h = &self.hat;
+        let cam_from_marker = Isometry3::from_parts(
+            Translation3::new(
+                0.0,
+                -h.tag_above_camera_mm * 1e-3,
+                h.tag_ahead_of_camera_mm * 1e-3,
+            ),
+            UnitQuaternion::from_axis_angle(&Vector3::z_axis(), std::f64::consts::PI),
+        );
+        HeadMount {
+            schema_version: HEAD_MOUNT_SCHEMA_VERSION,
+            name: "hat".into(),
+            marker_from_cam: TransformDef::from_pose(&cam_from_marker.inverse()),
+        }
+    }
+
+    /// Generate `params.scad`, the tool definition files and the hat's head mount.
     pub fn generate(&self) -> Result<GeneratedHardware> {
         let tools = [
             ToolKind::Chopstick,
@@ -789,9 +812,12 @@ impl HardwareParams {
             Ok((def.name.clone(), text))
         })
         .collect::<Result<Vec<_>>>()?;
+        let head_mount = head_mount_toml(&self.head_mount());
+        HeadMount::parse(&head_mount, Path::new("<generated hat>"))?;
         Ok(GeneratedHardware {
             params_scad: self.params_scad()?,
             tools,
+            head_mount,
         })
     }
 
@@ -1082,6 +1108,25 @@ fn points(p: &[[f64; 2]]) -> String {
     format!("[{}]", items.join(", "))
 }
 
+/// The text of a head mount file, with comments that say what the numbers are.
+pub fn head_mount_toml(mount: &HeadMount) -> String {
+    let r = &mount.marker_from_cam.rotation;
+    format!(
+        "# {GENERATED_HEADER}\n# KIWI head mount: the head camera's pose in the hat marker's frame \
+         (marker: x right,\n# y up along the printed marker, z out of its face; camera: x right, y \
+         down, z forward; m).\n# The hat holds the marker [hat] tag_above_camera_mm above and \
+         tag_ahead_of_camera_mm ahead of\n# the GO 3's lens, facing forward. A measured mount goes \
+         in its own file, named by session.toml's\n# [head] mount.\n\
+         schema_version = {HEAD_MOUNT_SCHEMA_VERSION}\nname = \"{}\"\n\n[marker_from_cam]\n\
+         rotation = [{}, {}, {}]\ntranslation_m = {}\n",
+        mount.name,
+        vec3(r[0]),
+        vec3(r[1]),
+        vec3(r[2]),
+        vec3(mount.marker_from_cam.translation_m)
+    )
+}
+
 /// The text of a tool definition file, with the comments that explain each section.
 pub fn tool_toml(def: &ToolDefinition) -> String {
     let mut s = format!("# {GENERATED_HEADER}\n");
@@ -1236,6 +1281,13 @@ mod tests {
                 path.display()
             );
         }
+        let hat = root.join("hardware/head/hat.toml");
+        assert!(
+            std::fs::read_to_string(&hat).unwrap() == generated.head_mount,
+            "{} is not what hardware/params.toml gives: run `make hardware`",
+            hat.display()
+        );
+        assert_eq!(HeadMount::builtin().unwrap(), params().head_mount());
         // The built-in definitions the simulator and estimator use are these files.
         for kind in [
             ToolKind::Chopstick,

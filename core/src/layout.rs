@@ -89,10 +89,22 @@ pub struct HeadConfig {
     pub unit: String,
     /// Folder of the unit's calibration set, relative to the session root.
     pub calibration: PathBuf,
+    /// ArUco dictionary of the hat marker (OpenCV's name without `DICT_`, e.g. `4x4_50`).
+    #[serde(default = "default_marker_dictionary")]
+    pub marker_dictionary: String,
     /// ArUco id of the hat marker.
     pub marker_id: u32,
     /// Side length of the hat marker's black square (m).
     pub marker_size_m: f64,
+    /// A measured head mount file (`marker_from_cam`), relative to the session folder; absent,
+    /// the printed hat's CAD mount (`hardware/head/hat.toml`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub mount: Option<PathBuf>,
+}
+
+/// The printed hat's ArUco dictionary.
+fn default_marker_dictionary() -> String {
+    "4x4_50".into()
 }
 
 /// One episode of the session.
@@ -348,6 +360,17 @@ impl Session {
             let file = root.join(c).join("calibration.json");
             if !file.is_file() {
                 return Err(CoreError::Missing { path: file, fix: "certify the unit with `kiwi-calib certify` or fix the calibration path in session.toml".into() });
+            }
+        }
+        if let Some(mount) = self.head.as_ref().and_then(|h| h.mount.as_ref()) {
+            let file = root.join(mount);
+            if !file.is_file() {
+                return Err(CoreError::Missing {
+                    path: file,
+                    fix: "fix [head] mount in session.toml, or remove it to use the printed hat's \
+                          mount (hardware/head/hat.toml)"
+                        .into(),
+                });
             }
         }
         for ep in &self.episodes {

@@ -27,6 +27,7 @@ pub mod error;
 pub mod fit;
 pub mod geometry;
 pub mod hardware;
+pub mod head;
 pub mod imu;
 pub mod io;
 pub mod kalibr;

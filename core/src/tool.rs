@@ -120,6 +120,32 @@ pub struct TransformDef {
     pub translation_m: [f64; 3],
 }
 
+impl TransformDef {
+    /// Check that the rotation is proper and the translation finite; `field` names the table in
+    /// errors and `fix` says where to look.
+    pub fn validate(&self, field: &str, fix: &str) -> Result<()> {
+        let r = Matrix3::from_fn(|i, j| self.rotation[i][j]);
+        let ortho = (r.transpose() * r - Matrix3::identity()).abs().max();
+        if !(ortho < ORTHO_TOL * 10.0 && (r.determinant() - 1.0).abs() < ORTHO_TOL * 10.0) {
+            return Err(CoreError::invalid_value(
+                format!("{field}.rotation"),
+                "a proper rotation matrix (orthonormal rows, determinant +1)",
+                format!("|RᵀR − I| = {ortho:.2e}, det {:.6}", r.determinant()),
+                fix,
+            ));
+        }
+        if !self.translation_m.iter().all(|v| v.is_finite()) {
+            return Err(CoreError::invalid_value(
+                format!("{field}.translation_m"),
+                "finite metres",
+                format!("{:?}", self.translation_m),
+                fix,
+            ));
+        }
+        Ok(())
+    }
+}
+
 /// A tool definition file.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -295,28 +321,10 @@ impl ToolDefinition {
                 );
             }
         }
-        let r = Matrix3::from_fn(|i, j| self.cam_from_tip.rotation[i][j]);
-        let ortho = (r.transpose() * r - Matrix3::identity()).abs().max();
-        if !(ortho < ORTHO_TOL * 10.0 && (r.determinant() - 1.0).abs() < ORTHO_TOL * 10.0) {
-            return bad(
-                "cam_from_tip.rotation",
-                "a proper rotation matrix (orthonormal rows, determinant +1)",
-                format!("|RᵀR − I| = {ortho:.2e}, det {:.6}", r.determinant()),
-            );
-        }
-        if !self
-            .cam_from_tip
-            .translation_m
-            .iter()
-            .all(|v| v.is_finite())
-        {
-            return bad(
-                "cam_from_tip.translation_m",
-                "finite metres",
-                format!("{:?}", self.cam_from_tip.translation_m),
-            );
-        }
-        Ok(())
+        self.cam_from_tip.validate(
+            "cam_from_tip",
+            "measure it again as hardware/tools/README.md describes",
+        )
     }
 
     /// Hinge position in the front-lens frame (m).
@@ -344,11 +352,7 @@ impl ToolDefinition {
 
     /// `front_from_tip`.
     pub fn cam_from_tip(&self) -> Pose {
-        let r = Matrix3::from_fn(|i, j| self.cam_from_tip.rotation[i][j]);
-        Isometry3::from_parts(
-            Translation3::from(Vector3::from(self.cam_from_tip.translation_m)),
-            UnitQuaternion::from_matrix(&r),
-        )
+        self.cam_from_tip.to_pose()
     }
 
     /// The tool's solid parts at an opening (rad for the chopstick, m for the parallel jaw), as

@@ -6,7 +6,7 @@
 use std::path::Path;
 
 use kiwi_core::hardware::HardwareParams;
-use kiwi_fixtures::scenario::head_from_marker;
+use kiwi_fixtures::scenario::cam_from_marker;
 use kiwi_fixtures::session::{HAT_MARKER_ID, HAT_MARKER_SIZE_M};
 use nalgebra::Vector3;
 
@@ -16,7 +16,7 @@ fn hat_mount_matches_the_simulated_hat_marker() {
     let p = HardwareParams::load(&path).unwrap();
     assert_eq!(p.hat.tag_id, HAT_MARKER_ID);
     assert!((p.hat.tag_size_mm / 1000.0 - HAT_MARKER_SIZE_M).abs() < 1e-12);
-    let t = head_from_marker();
+    let t = cam_from_marker();
     let expected = Vector3::new(
         0.0,
         -p.hat.tag_above_camera_mm,

@@ -8,7 +8,9 @@
 //!
 //! Per episode, once the maps are frozen: `sync` → `localize-<wrist>-<lens>` (four streams, no map
 //! updates) → `observations-<wrist>` (eq. 3) → `fusion-<wrist>` (eq. 4) → `gripper-<wrist>` →
-//! `outputs` (tool tip on the session timeline, TUM files, `quality.json`).
+//! `outputs` (tool tip on the session timeline, TUM files, `quality.json`). With a head camera,
+//! `head` (the hat marker in both rear streams, fused into the head's track, and the head
+//! camera's poses) runs after both wrists' fusion and before `outputs`, which publishes it.
 //!
 //! Per session, when `session.toml` has an `[export]` table and the run covers every episode:
 //! `export-<format>` (a dataset of every usable episode, from the episodes' published `out/`),
@@ -18,8 +20,8 @@
 //! `report/index.html`), last, after every episode's `outputs` and every export. It reads
 //! what the stages before it left, failed ones included.
 //!
-//! Stages for head pose and the floor reference attach after `fusion-<wrist>` / `outputs` in
-//! [`build`] (each with its own family name), in the same way.
+//! The floor reference attaches after `fusion-<wrist>` and before `outputs` in [`build`] (with
+//! its own family name), in the same way as `head`.
 
 use kiwi_core::layout::Side;
 
@@ -132,6 +134,12 @@ pub enum StageKind {
         /// Wrist.
         side: Side,
     },
+    /// The head's track from the hat marker in both rear streams, and the head camera's poses
+    /// (§4.3.2), when the session has a head camera.
+    Head {
+        /// Episode.
+        episode: String,
+    },
     /// The episode's deliverables: tool-tip trajectories, TUM files, `quality.json`.
     Outputs {
         /// Episode.
@@ -186,6 +194,7 @@ pub fn id_of(kind: &StageKind) -> StageId {
         StageKind::Gripper { episode, side } => {
             StageId::episode(episode, format!("gripper-{}", side.camera_name()))
         }
+        StageKind::Head { episode } => StageId::episode(episode, "head"),
         StageKind::Outputs { episode } => StageId::episode(episode, "outputs"),
         StageKind::Export { format } => StageId::session(format!("export-{}", format.name())),
         StageKind::Report => StageId::session("report"),
@@ -193,7 +202,7 @@ pub fn id_of(kind: &StageKind) -> StageId {
 }
 
 /// Stage families a user can name in `--from`, `--force` and `kiwi status`.
-pub const FAMILIES: [&str; 12] = [
+pub const FAMILIES: [&str; 13] = [
     "sync",
     "map",
     "tool",
@@ -203,6 +212,7 @@ pub const FAMILIES: [&str; 12] = [
     "observations",
     "fusion",
     "gripper",
+    "head",
     "outputs",
     "export",
     "report",
@@ -354,6 +364,22 @@ pub fn build(ctx: &SessionContext, episodes: &[String]) -> Vec<StageNode> {
         }
         for &side in &sides {
             deps.push(id_of(&StageKind::Placement { side }));
+        }
+        if ctx.session.head.is_some() {
+            let head = StageKind::Head {
+                episode: episode.clone(),
+            };
+            let mut head_deps = vec![id_of(&StageKind::Sync {
+                episode: episode.clone(),
+            })];
+            head_deps.extend(sides.iter().map(|&side| {
+                id_of(&StageKind::Fusion {
+                    episode: episode.clone(),
+                    side,
+                })
+            }));
+            deps.push(id_of(&head));
+            push(head, head_deps);
         }
         push(
             StageKind::Outputs {

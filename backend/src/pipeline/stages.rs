@@ -70,7 +70,8 @@ pub fn version(kind: &StageKind) -> &'static str {
         StageKind::Observations { .. } => "observations-2",
         StageKind::Fusion { .. } => "fusion-3",
         StageKind::Gripper { .. } => "gripper-1",
-        StageKind::Outputs { .. } => "outputs-1",
+        StageKind::Head { .. } => "head-1",
+        StageKind::Outputs { .. } => "outputs-2",
         StageKind::Export { .. } => "export-1",
         StageKind::Report => "report-1",
     }
@@ -97,6 +98,20 @@ pub fn parameters(kind: &StageKind) -> serde_json::Value {
                 "sigma_rotation_rad": c.sigma_rotation_rad,
                 "huber_k": c.huber_k,
                 "max_scale_sigma": c.max_scale_sigma,
+            })
+        }
+        StageKind::Head { .. } => {
+            let o = crate::head::track::TrackOptions::default();
+            serde_json::json!({
+                "rate_hz": o.rate_hz,
+                "half_window_s": o.half_window_s,
+                "outlier_spreads": o.outlier_spreads,
+                "min_spread": [o.min_spread_m, o.min_spread_rad],
+                "min_observations": o.min_observations,
+                "min_ambiguity_ratio": crate::head::marker::MIN_AMBIGUITY_RATIO,
+                "max_corner_error_rad": crate::head::marker::MAX_CORNER_ERROR_RAD,
+                "previous_sighting_max_age_s": crate::head::episode::PREVIOUS_SIGHTING_MAX_AGE_S,
+                "max_node_gap_s": crate::head::episode::MAX_NODE_GAP_S,
             })
         }
         _ => serde_json::Value::Null,
@@ -310,6 +325,54 @@ pub fn inputs(ctx: &SessionContext, kind: &StageKind) -> Result<Vec<InputDigest>
                 calibration_input(ctx, w)?,
             ]
         }
+        StageKind::Head { episode } => {
+            let layout = ctx.episode(episode);
+            let mut v = calibration_inputs(ctx)?;
+            for w in ctx.wrists.values() {
+                v.push(stream_input(ctx, &layout, w.camera, "rear")?);
+                v.push(file_input(
+                    ctx,
+                    format!("frames {}/front", w.camera),
+                    &layout.frames_csv(w.camera, "front"),
+                )?);
+                v.push(file_input(
+                    ctx,
+                    format!("meta {}", w.camera),
+                    &layout.meta_json(w.camera),
+                )?);
+            }
+            if let Some(h) = &ctx.session.head {
+                let lens = head_lens(ctx, episode)?;
+                v.push(file_input(
+                    ctx,
+                    format!("frames head/{lens}"),
+                    &layout.frames_csv("head", &lens),
+                )?);
+                v.push(InputDigest {
+                    name: "head marker".into(),
+                    path: ctx.relative(&ctx.toml),
+                    digest: sha256_bytes(
+                        format!(
+                            "{} {} {}",
+                            h.marker_dictionary, h.marker_id, h.marker_size_m
+                        )
+                        .as_bytes(),
+                    ),
+                });
+                let (mount, _) = head_mount(ctx)?;
+                v.push(InputDigest {
+                    name: "head mount".into(),
+                    path: h.mount.as_ref().map_or_else(
+                        || kiwi_core::head::BUILTIN_HEAD_MOUNT_PATH.to_string(),
+                        |m| ctx.relative(&ctx.root.join(m)),
+                    ),
+                    digest: sha256_bytes(
+                        serde_json::to_string(&mount).unwrap_or_default().as_bytes(),
+                    ),
+                });
+            }
+            v
+        }
         StageKind::Outputs { .. } => {
             let mut v = Vec::new();
             for w in ctx.wrists.values() {
@@ -471,6 +534,7 @@ pub fn run(env: &StageEnv<'_>, kind: &StageKind) -> Result<()> {
         StageKind::Observations { episode, side } => run_observations(env, episode, *side),
         StageKind::Fusion { episode, side } => run_fusion(env, episode, *side),
         StageKind::Gripper { episode, side } => run_gripper(env, episode, *side),
+        StageKind::Head { episode } => run_head(env, episode),
         StageKind::Outputs { episode } => run_outputs(env, episode),
         StageKind::Export { format } => run_export(env, *format),
         StageKind::Report => {
@@ -888,6 +952,166 @@ fn run_gripper(env: &StageEnv<'_>, episode: &str, side: Side) -> Result<()> {
     write_json(&files.summary, &without_timings(summary))
 }
 
+/// The files of the head stage, published by `outputs` in the episode's `out/`.
+pub const HEAD_FILES: [&str; 3] = ["head.csv", "head.tum", "head_camera.csv"];
+/// The head stage's record (also `quality.json`'s `head` section).
+pub const HEAD_SUMMARY_FILE: &str = "head.json";
+
+/// The head camera's lens: the first lens its `meta.json` lists.
+pub fn head_lens(ctx: &SessionContext, episode: &str) -> Result<String> {
+    let layout = ctx.episode(episode);
+    let meta = layout.read_meta("head")?;
+    meta.lenses.first().cloned().ok_or_else(|| {
+        input(
+            &layout.meta_json("head"),
+            "field `lenses` is empty: expected the head camera's lens (e.g. [\"main\"]); \
+             re-ingest the head camera's recording"
+                .into(),
+        )
+    })
+}
+
+/// The session's head mount and where it came from: `[head] mount`, else the printed hat.
+pub fn head_mount(ctx: &SessionContext) -> Result<(kiwi_core::head::HeadMount, String)> {
+    match ctx.session.head.as_ref().and_then(|h| h.mount.as_ref()) {
+        Some(path) => {
+            let file = ctx.root.join(path);
+            Ok((
+                kiwi_core::head::HeadMount::load(&file)?,
+                ctx.relative(&file),
+            ))
+        }
+        None => Ok((
+            kiwi_core::head::HeadMount::builtin()?,
+            format!(
+                "{} (the printed hat's CAD mount)",
+                kiwi_core::head::BUILTIN_HEAD_MOUNT_PATH
+            ),
+        )),
+    }
+}
+
+fn run_head(env: &StageEnv<'_>, episode: &str) -> Result<()> {
+    use crate::head::episode::{
+        HeadSummary, HeadTrack, WristPlacement, camera_frames_file, find_sightings, observations,
+        track_files,
+    };
+    let ctx = env.ctx;
+    let Some(head) = &ctx.session.head else {
+        return Err(input(
+            &ctx.toml,
+            "has no [head]: the head stage needs the head camera and its hat marker".into(),
+        ));
+    };
+    let sync: crate::sync::SyncResult = read_json_file(
+        &env.dep_dir(&StageKind::Sync {
+            episode: episode.to_string(),
+        })
+        .join(SYNC_FILE),
+        "sync result",
+    )?;
+    let clock_of = |name: &str| sync.cameras.iter().find(|c| c.name == name);
+    let layout = ctx.episode(episode);
+    let (mount, mount_source) = head_mount(ctx)?;
+    let mut sources = Vec::new();
+    for w in ctx.wrists.values() {
+        sources.push(crate::frames::FrameSource::open(
+            &layout.lens_dir(w.camera, "rear"),
+        )?);
+    }
+    let total: usize = sources.iter().map(crate::frames::FrameSource::len).sum();
+    let done = std::sync::atomic::AtomicUsize::new(0);
+    let tick = || {
+        let d = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+        (env.progress)(d, total);
+    };
+    let mut all = Vec::new();
+    let mut wrists = std::collections::BTreeMap::new();
+    let (mut t0, mut t1) = (f64::INFINITY, f64::NEG_INFINITY);
+    for ((&side, w), source) in ctx.wrists.iter().zip(&sources) {
+        let fused = read_fused(
+            &env.dep_dir(&StageKind::Fusion {
+                episode: episode.to_string(),
+                side,
+            })
+            .join(FUSED_FILE),
+        )?;
+        let clock = clock_of(w.camera);
+        for row in &fused {
+            if let Some(t) = crate::outputs::session_time(clock, row.t_camera) {
+                t0 = t0.min(t);
+                t1 = t1.max(t);
+            }
+        }
+        let nodes: Vec<crate::fusion::FusedNode> = fused.into_iter().map(|r| r.node).collect();
+        let camera = w
+            .calibration
+            .lens("rear")
+            .ok_or_else(|| {
+                input(
+                    &w.calibration_path,
+                    "field `lenses`: no lens named `rear`".into(),
+                )
+            })?
+            .camera()?;
+        let finder = crate::head::marker::MarkerFinder::new(
+            camera,
+            &head.marker_dictionary,
+            head.marker_id as usize,
+        )?;
+        let readout = 2.0 * exposure_centre_delay(ctx, episode, w)?;
+        let (sightings, mut counts) =
+            find_sightings(source, &finder, head.marker_size_m, readout, &tick)?;
+        let placement = WristPlacement {
+            side,
+            nodes: &nodes,
+            rear_cam_from_imu: w.rear.cam_from_imu,
+            rear_time_shift_s: w.rear.time_shift_s,
+            front_time_shift_s: w.front.time_shift_s,
+            clock,
+        };
+        let (obs, unplaced) = observations(&placement, &sightings);
+        counts.unplaced = unplaced;
+        all.extend(obs);
+        wrists.insert(w.camera.to_string(), counts);
+    }
+    let options = crate::head::track::TrackOptions::default();
+    let samples = if t1 >= t0 {
+        crate::head::track::fuse(&all, t0, t1, &options)
+    } else {
+        Vec::new()
+    };
+    let track = HeadTrack {
+        samples,
+        marker_from_cam: mount.marker_from_cam(),
+    };
+    let lens = head_lens(ctx, episode)?;
+    let frame_times: Vec<f64> =
+        kiwi_core::layout::read_frames_csv(&layout.frames_csv("head", &lens))?
+            .iter()
+            .map(|f| f.t)
+            .collect();
+    let (track_csv, track_tum) = track_files(&track);
+    let (camera_csv, camera_frames_posed) =
+        camera_frames_file(&track, &frame_times, clock_of("head"));
+    let [track_name, tum_name, camera_name] = HEAD_FILES;
+    write_atomic(&env.out.join(track_name), track_csv.as_bytes())?;
+    write_atomic(&env.out.join(tum_name), track_tum.as_bytes())?;
+    write_atomic(&env.out.join(camera_name), camera_csv.as_bytes())?;
+    let summary = HeadSummary {
+        mount: mount_source,
+        wrists,
+        observations: all.len(),
+        samples: track.samples.len(),
+        rate_hz: options.rate_hz,
+        posed_fraction: track.posed_fraction(),
+        longest_gap_s: track.longest_gap_s(),
+        camera_frames: frame_times.len(),
+        camera_frames_posed,
+    };
+    write_json(&env.out.join(HEAD_SUMMARY_FILE), &summary)
+}
+
 /// A session map and its landmarks in the scene frame: the map's metric recovery, and for a
 /// front map its placement into the scene (eq. 2). `root` is the session folder.
 pub fn map_in_scene(root: &Path, map: MapName) -> Result<(VisualMap, Vec<nalgebra::Vector3<f64>>)> {
@@ -1106,12 +1330,36 @@ fn run_outputs(env: &StageEnv<'_>, episode: &str) -> Result<()> {
             tool_calibrated,
         });
     }
+    let head = match &ctx.session.head {
+        None => None,
+        Some(_) => {
+            let dir = env.dep_dir(&StageKind::Head {
+                episode: episode.to_string(),
+            });
+            let mut files = Vec::new();
+            for name in HEAD_FILES {
+                let path = dir.join(name);
+                let bytes = std::fs::read(&path).map_err(|e| {
+                    input(
+                        &path,
+                        format!("cannot read the head stage's file: {e}; re-run"),
+                    )
+                })?;
+                files.push((name.to_string(), bytes));
+            }
+            Some(crate::outputs::HeadOutputs {
+                files,
+                summary: read_json_file(&dir.join(HEAD_SUMMARY_FILE), "head stage record")?,
+            })
+        }
+    };
     let inputs = crate::outputs::EpisodeInputs {
         episode: episode.to_string(),
         map_episode: ctx.session.map_episode.clone(),
         wrists,
         sync,
         metric,
+        head,
     };
     crate::outputs::write_outputs(&inputs, &env.out.join(PUBLISHED_DIR))?;
     Ok(())
