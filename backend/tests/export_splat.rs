@@ -575,3 +575,83 @@ fn scene_exports_refuse_bad_input() {
         "{err}"
     );
 }
+
+/// The head camera's images: posed from the outputs' `head.csv` at their centre row's
+/// exposure on the head camera's clock, left out inside the track's gap, masked at the rim of
+/// the lens only, and a rig of their own.
+#[test]
+fn head_camera_images_are_posed_from_the_head_track() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path();
+    let session = scene_session(root);
+    let head_cal = synthetic::add_head_camera(&SPEC, root);
+    let out = root.join("colmap");
+    let report = export(&session, ExportFormat::Colmap, &options(), &out).unwrap();
+    let track =
+        kiwi_backend::head::episode::CameraTrack::read_csv(&root.join("episodes/ep0/out/head.csv"))
+            .unwrap();
+    let readout = readout_for(&head_cal, synthetic::HEAD_MODE, synthetic::RATE).unwrap();
+    assert!(readout > 0.01, "the GO 3 reads a frame out in 20 ms");
+    let images = colmap_images(&out);
+    let head: Vec<(&String, &(Pose, String))> = images
+        .iter()
+        .filter(|(n, _)| n.starts_with("ep0/head_main/"))
+        .collect();
+    let (mut expected, mut in_gap) = (0, 0);
+    let (t_first, rows) = synthetic::expected_grid(&SPEC, RATE);
+    for k in 0..rows {
+        let t = t_first + k as f64 / RATE;
+        let frame = (0..SPEC.frames)
+            .min_by(|&a, &b| {
+                (synthetic::head_session_time(a) - t)
+                    .abs()
+                    .total_cmp(&(synthetic::head_session_time(b) - t).abs())
+            })
+            .unwrap();
+        let centre = synthetic::head_session_time(frame) + readout / 2.0;
+        match track.at(centre) {
+            Some(_) => expected += 1,
+            None => in_gap += 1,
+        }
+    }
+    assert!(in_gap > 0, "the grid crosses the track's gap");
+    assert_eq!(head.len(), expected, "{in_gap} head frames in the gap");
+    let cameras = colmap_cameras(&out);
+    for (name, (pose, camera)) in &head {
+        let frame: usize = name
+            .rsplit('/')
+            .next()
+            .unwrap()
+            .trim_end_matches(".png")
+            .parse()
+            .unwrap();
+        let t = synthetic::head_session_time(frame) + readout / 2.0;
+        // Exactly the track's pose at the centre row's time, and the truth to interpolation.
+        assert_pose_eq(pose, &track.at(t).unwrap().scene_from_cam, 1e-6, name);
+        assert_pose_eq(pose, &synthetic::truth_head(t), 1e-4, name);
+        assert_eq!(
+            cameras[camera].len(),
+            8,
+            "OPENCV_FISHEYE: fx fy cx cy k1-k4"
+        );
+        let mask = image::open(out.join("images").join(name.replace(".png", MASK_SUFFIX)))
+            .unwrap()
+            .to_luma8();
+        // The rim beyond the lens field is ignored, the centre kept: no tool on the head.
+        let (w, h) = mask.dimensions();
+        assert_eq!(mask.get_pixel(w / 2, h / 2).0[0], KEEP);
+    }
+    let rigs = std::fs::read_to_string(out.join(COLMAP_MODEL_DIR).join("rigs.txt")).unwrap();
+    let head_camera = &head[0].1.1;
+    assert!(
+        rigs.lines()
+            .filter(|l| !l.starts_with('#'))
+            .any(|l| l.split_whitespace().nth(3) == Some(head_camera.as_str())),
+        "the head camera is a rig's reference: {rigs}"
+    );
+    assert!(
+        report.notes.iter().any(|n| n.contains("left out")),
+        "{:?}",
+        report.notes
+    );
+}

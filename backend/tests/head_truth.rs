@@ -181,11 +181,12 @@ fn the_head_track_and_camera_from_both_rear_lenses_match_the_truth() {
     // The head camera at its own frames' times, through its clock and the hat's mount.
     let head_rows = truth_rows(&truth_dir.join("head").join("main_poses.csv"));
     let head_clock = clock_from("head", &head_rows, 0.0);
+    let cameras = track.camera_track();
     let (mut cam_p, mut cam_r, mut cam_posed) = (0.0f64, 0.0f64, 0);
     for r in &head_rows {
         let t = kiwi_backend::outputs::session_time(Some(&head_clock), r.t).unwrap();
         assert!((t - r.t_session).abs() < 1e-9);
-        let Some(c) = track.camera_at(t) else {
+        let Some(c) = cameras.at(t) else {
             continue;
         };
         cam_posed += 1;

@@ -13,7 +13,7 @@ use kiwi_fixtures::session::{SessionOptions, write_session};
 
 #[path = "support/pipeline_sessions.rs"]
 mod sessions;
-use sessions::{copy_inputs, files, localizing, small_session, unmappable_session};
+use sessions::{copy_inputs, files, localizing, small_session_with_head, unmappable_session};
 
 const KIWI: &str = env!("CARGO_BIN_EXE_kiwi");
 /// Longest the killed run may take to reach localization before the test gives up.
@@ -55,7 +55,8 @@ fn results(session: &Path) -> Vec<(String, Vec<u8>)> {
 #[test]
 fn a_killed_run_resumes_to_byte_identical_results() {
     let tmp = tempfile::tempdir().unwrap();
-    let a = small_session(&tmp.path().join("a"), 2);
+    // With the head camera: its stage runs and resumes like the others.
+    let a = small_session_with_head(&tmp.path().join("a"), 2);
     // With the datasets on: their stages run last, and resume like the others.
     let mut text = std::fs::read_to_string(&a).unwrap();
     text.push_str("\n[export]\nformats = [\"lerobot\", \"sidecar\", \"colmap\"]\n");
@@ -90,6 +91,32 @@ fn a_killed_run_resumes_to_byte_identical_results() {
         "some episode is usable: {}",
         report["counts"]
     );
+    // The head stage ran per episode and the outputs publish its files and record.
+    for ep in ["ep000", "ep001"] {
+        let s = stages
+            .iter()
+            .find(|s| s["stage"] == format!("{ep}/head"))
+            .unwrap_or_else(|| panic!("no head stage for {ep}: {stages:?}"));
+        assert_eq!(s["outcome"], "ran", "{s}");
+    }
+    for ep in &usable {
+        let out = a.parent().unwrap().join(format!("episodes/{ep}/out"));
+        for file in ["head.csv", "head.tum", "head_camera.csv"] {
+            assert!(out.join(file).is_file(), "{ep}: no {file}");
+        }
+        let q: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(out.join("quality.json")).unwrap())
+                .unwrap();
+        let head = &q["head"];
+        for wrist in ["left", "right"] {
+            assert!(
+                head["wrists"][wrist]["frames"].as_u64().unwrap() > 0,
+                "{head}"
+            );
+        }
+        assert!(head["samples"].as_u64().unwrap() > 0, "{head}");
+        println!("{ep} head: {head}");
+    }
     for name in [
         "session/export-lerobot",
         "session/export-sidecar",

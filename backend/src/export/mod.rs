@@ -459,6 +459,8 @@ pub struct EpisodeOutputs {
     pub quality: QualityRecord,
     /// Per wrist, in session order (left, right).
     pub wrists: Vec<WristTrajectory>,
+    /// The head camera's poses (`out/head.csv`), when the session has a head camera.
+    pub head: Option<crate::head::episode::CameraTrack>,
 }
 
 impl EpisodeOutputs {
@@ -563,12 +565,19 @@ pub fn open_session(session_toml: &Path, episodes: Option<&[String]>) -> Result<
             .map(|e| e.description.trim().to_string())
             .filter(|d| !d.is_empty())
             .unwrap_or_else(|| name.clone());
+        let head_csv = dir.join("out").join("head.csv");
+        let head = if head_csv.is_file() {
+            Some(crate::head::episode::CameraTrack::read_csv(&head_csv)?)
+        } else {
+            None
+        };
         out.push(EpisodeOutputs {
             name,
             task,
             dir,
             quality,
             wrists,
+            head,
         });
     }
     Ok(SessionExport {

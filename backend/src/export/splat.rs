@@ -12,10 +12,12 @@
 //! lenses' time-shift difference, composed with `front_from_lens = front_from_imu ·
 //! lens_from_imu⁻¹`.
 //! Lenses of one unit exposed together are one rig frame, so front and rear stay one rigid body.
-//! The head camera has no pose in the outputs and is not exported.
+//! The head camera's (ego) images, when the session has one, are posed from the outputs'
+//! `head.csv` (the hat marker's track through the head mount) at their centre row's exposure;
+//! the head camera is a rig of its own.
 //!
 //! Every image gets a mask ([`super::mask`]) of the tool's parts at the frame's gripper opening
-//! and of the camera body at the rim of the lens field.
+//! (wrist lenses) and of the camera body at the rim of the lens field.
 
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
@@ -215,21 +217,22 @@ fn refit_kb4(ds: &DoubleSphere, max_theta: f64) -> std::result::Result<(Kb4, Ref
     ))
 }
 
-/// A lens stream of a wrist unit that is exported.
+/// A lens stream that is exported: of a wrist unit, or the head camera's.
 struct Lens {
     view: View,
-    side: Side,
+    /// The wrist (`None` for the head camera).
+    side: Option<Side>,
     camera_id: u32,
     model: Camera,
     /// The unit's `calibration.json` (named when a stream does not fit it).
     calibration_path: std::path::PathBuf,
     fisheye: FisheyeCamera,
-    /// `front_from_lens` (identity for the front lens).
+    /// `front_from_lens` (identity for the front lens and the head camera).
     front_from_lens: Pose,
     /// This lens's time shift minus the front lens's (s).
     shift_from_front_s: f64,
-    /// The unit's tool (the parts masked out of its images).
-    tool: ToolDefinition,
+    /// The unit's tool (the parts masked out of its images; none on the head camera).
+    tool: Option<ToolDefinition>,
     /// The unit's calibration (its recording modes' readout times).
     calibration: UnitCalibration,
     /// Per-pixel rays for the masks.
@@ -260,7 +263,8 @@ struct RigFrame {
 
 /// A unit's lenses as one rigid body; the first lens is the reference.
 struct Rig {
-    side: Side,
+    /// The wrist (`None` for the head camera).
+    side: Option<Side>,
     lenses: Vec<usize>,
 }
 
@@ -408,8 +412,8 @@ pub fn write(
     Ok(report)
 }
 
-/// The lens streams to export: those named, else every lens of every wrist camera. The head
-/// camera has no pose in the outputs.
+/// The lens streams to export: those named, else every lens of every wrist camera and of the
+/// head camera (when the session has one).
 fn scene_views(exp: &SessionExport, options: &ExportOptions) -> Result<Vec<View>> {
     let Some(first) = exp.episodes.first() else {
         return Ok(Vec::new());
@@ -424,19 +428,25 @@ fn scene_views(exp: &SessionExport, options: &ExportOptions) -> Result<Vec<View>
                 let meta = layout.read_meta(camera)?;
                 v.extend(meta.lenses.iter().map(|l| format!("{camera}.{l}")));
             }
+            if exp.session.head.is_some() && layout.meta_json("head").is_file() {
+                let meta = layout.read_meta("head")?;
+                v.extend(meta.lenses.iter().map(|l| format!("head.{l}")));
+            }
             v
         }
     };
     let views = resolve_views(exp, Some(requested.as_slice()))?;
     if let Some(v) = views.iter().find(|v| {
-        !exp.session
+        !(exp
+            .session
             .wrists
             .keys()
             .any(|s| s.camera_name() == v.camera)
+            || (v.camera == "head" && exp.session.head.is_some()))
     }) {
         return Err(export_err(format!(
-            "--views: {}.{} is not a wrist lens; only wrist lenses have poses in the outputs \
-             (leave it out)",
+            "--views: {}.{} is neither a wrist lens nor the head camera's; only those have poses \
+             in the outputs (leave it out)",
             v.camera, v.lens
         )));
     }
@@ -476,15 +486,48 @@ fn open_lenses(exp: &SessionExport, views: &[View]) -> Result<Vec<Lens>> {
             let masker = LensMasker::new(&model, l.valid_fov_rad, front_from_lens.inverse());
             lenses.push(Lens {
                 view: view.clone(),
-                side: *side,
+                side: Some(*side),
                 camera_id: lenses.len() as u32 + 1,
                 model,
                 calibration_path: path.clone(),
                 fisheye,
                 front_from_lens,
                 shift_from_front_s: shift - front_shift,
-                tool: tool.clone(),
+                tool: Some(tool.clone()),
                 calibration: cal.clone(),
+                masker,
+            });
+        }
+    }
+    if let Some(head) = &exp.session.head {
+        let path = exp.root.join(&head.calibration).join("calibration.json");
+        for view in views.iter().filter(|v| v.camera == "head") {
+            let cal = UnitCalibration::load(&path)?;
+            let l = cal.lens(&view.lens).ok_or_else(|| BackendError::Input {
+                path: path.clone(),
+                message: format!(
+                    "no lens `{}` in the head camera's calibration; certify it with that lens",
+                    view.lens
+                ),
+            })?;
+            let model = l.camera()?;
+            let fisheye =
+                opencv_fisheye(&model, l.valid_fov_rad).map_err(|m| BackendError::Input {
+                    path: path.clone(),
+                    message: format!("lens `{}`: {m}", view.lens),
+                })?;
+            let masker = LensMasker::new(&model, l.valid_fov_rad, Pose::identity());
+            lenses.push(Lens {
+                view: view.clone(),
+                side: None,
+                camera_id: lenses.len() as u32 + 1,
+                model,
+                calibration_path: path.clone(),
+                fisheye,
+                front_from_lens: Pose::identity(),
+                shift_from_front_s: 0.0,
+                tool: None,
+                calibration: cal,
                 masker,
             });
         }
@@ -601,11 +644,53 @@ fn pose_episode(
     let rig_wrists: Vec<_> = scene
         .rigs
         .iter()
-        .map(|rig| ep.wrists.iter().find(|w| w.side == rig.side))
+        .map(|rig| ep.wrists.iter().find(|w| Some(w.side) == rig.side))
         .collect();
     for k in 0..times.len() {
         let group = first_group + k;
         for (r, wrist) in rig_wrists.iter().enumerate() {
+            if scene.rigs[r].side.is_none() {
+                // The head camera: posed by the head's track.
+                for &li in &scene.rigs[r].lenses.clone() {
+                    let frame = picks[li][k];
+                    let t = streams[li].session_times[frame] + centre_delays[li];
+                    let Some(cam) = ep.head.as_ref().and_then(|h| h.at(t)) else {
+                        unposed += 1;
+                        continue;
+                    };
+                    let lens = &lenses[li];
+                    let id = scene.images.len() as u32 + 1;
+                    scene.frames.push(RigFrame {
+                        id: scene.frames.len() as u32 + 1,
+                        rig: r,
+                        ref_from_scene: cam.scene_from_cam.inverse(),
+                        images: vec![id],
+                    });
+                    let stem = format!(
+                        "{}/{}_{}/{frame:06}",
+                        ep.name, lens.view.camera, lens.view.lens
+                    );
+                    let name = format!("{stem}.png");
+                    let mask_name = format!("{stem}{MASK_SUFFIX}");
+                    scene.images.push(SceneImage {
+                        id,
+                        lens: li,
+                        name: name.clone(),
+                        scene_from_cam: cam.scene_from_cam,
+                        mask_name: mask_name.clone(),
+                        points2d: Vec::new(),
+                        test: group.is_multiple_of(SPLIT_EVERY),
+                    });
+                    written[li].push(Picked {
+                        frame,
+                        image: scene.images.len() - 1,
+                        name,
+                        mask_name,
+                        openings: Vec::new(),
+                    });
+                }
+                continue;
+            }
             let Some(wrist) = wrist else {
                 continue;
             };
@@ -677,7 +762,10 @@ fn pose_episode(
                     image: scene.images.len() - 1,
                     name,
                     mask_name,
-                    openings: mask_openings(&lens.tool, opening, confidence),
+                    openings: lens
+                        .tool
+                        .as_ref()
+                        .map_or_else(Vec::new, |tool| mask_openings(tool, opening, confidence)),
                 });
             }
         }
@@ -730,7 +818,7 @@ fn pose_episode(
                 let solids: Vec<_> = frames[k]
                     .openings
                     .iter()
-                    .flat_map(|&o| lens.tool.solids(o))
+                    .flat_map(|&o| lens.tool.as_ref().map(|t| t.solids(o)).unwrap_or_default())
                     .collect();
                 let mask = lens.masker.mask(&solids);
                 let mut png = Vec::new();

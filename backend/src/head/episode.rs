@@ -232,23 +232,15 @@ impl HeadTrack {
         })
     }
 
-    /// The head camera's pose at session time `t`: between the two track samples around it
-    /// when both are posed (no pose across a gap or outside the track).
-    pub fn camera_at(&self, t: f64) -> Option<HeadCameraPose> {
-        let k = self.samples.partition_point(|s| s.t_session <= t);
-        let a = self.camera_of(self.samples.get(k.checked_sub(1)?)?)?;
-        let Some(b_sample) = self.samples.get(k) else {
-            // On the last sample exactly.
-            return (self.samples[k - 1].t_session == t).then_some(a);
-        };
-        let b = self.camera_of(b_sample)?;
-        let (ta, tb) = (self.samples[k - 1].t_session, b_sample.t_session);
-        let f = ((t - ta) / (tb - ta)).clamp(0.0, 1.0);
-        Some(HeadCameraPose {
-            scene_from_cam: a.scene_from_cam.lerp_slerp(&b.scene_from_cam, f),
-            sigma_p_m: a.sigma_p_m.max(b.sigma_p_m),
-            sigma_r_rad: a.sigma_r_rad.max(b.sigma_r_rad),
-        })
+    /// The head camera's poses on the track's samples.
+    pub fn camera_track(&self) -> CameraTrack {
+        CameraTrack {
+            samples: self
+                .samples
+                .iter()
+                .map(|s| (s.t_session, self.camera_of(s)))
+                .collect(),
+        }
     }
 
     /// Fraction of samples posed.
@@ -282,6 +274,112 @@ impl HeadTrack {
             longest = longest.max(last.t_session - t0);
         }
         longest
+    }
+}
+
+/// The head camera's poses on the session timeline (the track's samples, `None` in gaps), as
+/// `head.csv` gives them.
+#[derive(Debug, Clone, Default)]
+pub struct CameraTrack {
+    /// `(session time, pose)` in time order.
+    pub samples: Vec<(f64, Option<HeadCameraPose>)>,
+}
+
+impl CameraTrack {
+    /// The head camera's pose at session time `t`: between the two samples around it when
+    /// both are posed (no pose across a gap or outside the track).
+    pub fn at(&self, t: f64) -> Option<HeadCameraPose> {
+        let k = self.samples.partition_point(|s| s.0 <= t);
+        let (ta, a) = self.samples.get(k.checked_sub(1)?)?;
+        let a = (*a)?;
+        let Some((tb, b)) = self.samples.get(k) else {
+            // On the last sample exactly.
+            return (*ta == t).then_some(a);
+        };
+        let b = (*b)?;
+        let f = ((t - ta) / (tb - ta)).clamp(0.0, 1.0);
+        Some(HeadCameraPose {
+            scene_from_cam: a.scene_from_cam.lerp_slerp(&b.scene_from_cam, f),
+            sigma_p_m: a.sigma_p_m.max(b.sigma_p_m),
+            sigma_r_rad: a.sigma_r_rad.max(b.sigma_r_rad),
+        })
+    }
+
+    /// Read the head camera's poses from an episode's `head.csv`.
+    pub fn read_csv(path: &std::path::Path) -> Result<Self> {
+        let text = kiwi_core::io::read_text(path)?;
+        let bad = |line: usize, message: String| crate::error::BackendError::Input {
+            path: path.to_path_buf(),
+            message: format!("line {line}: {message}; re-run `kiwi run` (stage head)"),
+        };
+        let mut lines = text.lines().enumerate();
+        match lines.next() {
+            Some((_, h)) if h.trim() == HEAD_HEADER => {}
+            other => {
+                return Err(bad(
+                    1,
+                    format!(
+                        "expected the header `{HEAD_HEADER}`, found `{}`",
+                        other.map_or("", |(_, h)| h)
+                    ),
+                ));
+            }
+        }
+        let column = |name: &str| HEAD_HEADER.split(',').position(|c| c == name).unwrap_or(0);
+        let (cam, sp, sr) = (
+            column("cam_px"),
+            column("cam_sigma_p_m"),
+            column("marker_sigma_r_rad"),
+        );
+        let mut samples = Vec::new();
+        for (i, line) in lines.filter(|(_, l)| !l.trim().is_empty()) {
+            let f: Vec<&str> = line.split(',').collect();
+            if f.len() != HEAD_HEADER.split(',').count() {
+                return Err(bad(
+                    i + 1,
+                    format!(
+                        "{} fields, expected {}",
+                        f.len(),
+                        HEAD_HEADER.split(',').count()
+                    ),
+                ));
+            }
+            let num = |k: usize| -> Result<Option<f64>> {
+                if f[k].is_empty() {
+                    return Ok(None);
+                }
+                f[k].parse::<f64>()
+                    .ok()
+                    .filter(|v| v.is_finite())
+                    .map(Some)
+                    .ok_or_else(|| {
+                        bad(
+                            i + 1,
+                            format!("field {} is not a number: `{}`", k + 1, f[k]),
+                        )
+                    })
+            };
+            let t = num(0)?.ok_or_else(|| bad(i + 1, "no session time".into()))?;
+            let values: Vec<Option<f64>> = (cam..cam + 7).map(num).collect::<Result<_>>()?;
+            let pose = match values.iter().copied().collect::<Option<Vec<f64>>>() {
+                Some(v) => Some(HeadCameraPose {
+                    scene_from_cam: Pose::from_parts(
+                        nalgebra::Translation3::new(v[0], v[1], v[2]),
+                        nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
+                            v[6], v[3], v[4], v[5],
+                        )),
+                    ),
+                    sigma_p_m: num(sp)?.unwrap_or(f64::NAN),
+                    sigma_r_rad: num(sr)?.unwrap_or(f64::NAN),
+                }),
+                None => None,
+            };
+            if samples.last().is_some_and(|(tp, _): &(f64, _)| *tp >= t) {
+                return Err(bad(i + 1, format!("session time {t} does not increase")));
+            }
+            samples.push((t, pose));
+        }
+        Ok(Self { samples })
     }
 }
 
@@ -374,6 +472,7 @@ pub fn camera_frames_file(
     frame_times: &[f64],
     clock: Option<&CameraClock>,
 ) -> (String, usize) {
+    let cameras = track.camera_track();
     let mut csv = String::with_capacity(frame_times.len() * 150 + 128);
     csv.push_str(HEAD_CAMERA_HEADER);
     csv.push('\n');
@@ -384,7 +483,7 @@ pub fn camera_frames_file(
         if let Some(ts) = t_session {
             let _ = write!(csv, "{ts:.6}");
         }
-        match t_session.and_then(|ts| track.camera_at(ts)) {
+        match t_session.and_then(|ts| cameras.at(ts)) {
             Some(cam) => {
                 posed += 1;
                 csv.push(',');
@@ -432,23 +531,35 @@ mod tests {
                 UnitQuaternion::from_axis_angle(&Vector3::z_axis(), std::f64::consts::PI),
             ),
         };
-        let at = |t: f64| {
-            track
-                .camera_at(t)
-                .map(|c| c.scene_from_cam.translation.vector)
-        };
+        let cameras = track.camera_track();
+        let at = |t: f64| cameras.at(t).map(|c| c.scene_from_cam.translation.vector);
         let p = at(0.05).unwrap();
         assert!((p - Vector3::new(0.5, -0.08, -0.1)).norm() < 1e-12, "{p}");
         assert!(at(0.15).is_none() && at(0.25).is_none());
         assert!(at(-0.01).is_none() && at(0.31).is_none());
         assert!(at(0.3).is_some());
         // The lever arm's share of the camera's position sigma.
-        let c = track.camera_at(0.0).unwrap();
+        let c = cameras.at(0.0).unwrap();
         let lever = (0.08f64).hypot(0.1);
         assert!((c.sigma_p_m - 0.002f64.hypot(0.01 * lever)).abs() < 1e-12);
         assert!((track.posed_fraction() - 0.75).abs() < 1e-12);
         assert!((track.longest_gap_s() - 0.1).abs() < 1e-12);
         let (csv, tum) = track_files(&track);
+        // head.csv reads back to the same camera track.
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(dir.path().join("head.csv"), &csv).unwrap();
+        let back = CameraTrack::read_csv(&dir.path().join("head.csv")).unwrap();
+        for t in [0.0, 0.05, 0.1, 0.15, 0.3] {
+            let (a, b) = (cameras.at(t), back.at(t));
+            assert_eq!(a.is_some(), b.is_some());
+            if let (Some(a), Some(b)) = (a, b) {
+                assert!(
+                    (a.scene_from_cam.translation.vector - b.scene_from_cam.translation.vector)
+                        .norm()
+                        < 1e-6
+                );
+            }
+        }
         assert_eq!(csv.lines().count(), 5);
         assert_eq!(tum.lines().count(), 3);
         let fields = HEAD_HEADER.split(',').count();

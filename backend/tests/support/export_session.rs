@@ -487,3 +487,133 @@ pub fn f64s(v: &Value) -> Vec<f64> {
         .map(|x| x.as_f64().unwrap())
         .collect()
 }
+
+/// The head camera's clock: first frame on its own clock, offset, drift (ppm).
+pub const HEAD_CLOCK: (f64, f64, f64) = (0.017, 0.0213, -15.0);
+/// Head camera frames: the GO 3's 29.97 Hz mode.
+pub const HEAD_MODE: &str = "go3-30fps";
+/// Samples of the head's track (30 Hz on the session timeline) that are a gap.
+pub const HEAD_GAP: std::ops::Range<usize> = 60..75;
+
+/// The head camera's true pose at session time `t`.
+pub fn truth_head(t: f64) -> Pose {
+    let p = Vector3::new(0.05 * t, 1.4 + 0.02 * (1.5 * t).sin(), 0.3);
+    let r = so3_exp(&Vector3::new(0.1 * t, 0.5 + 0.05 * t, -0.02));
+    Pose::from_parts(Translation3::from(p), r)
+}
+
+/// The head camera's session time of its frame `i`.
+pub fn head_session_time(i: usize) -> f64 {
+    let (first, offset, drift) = HEAD_CLOCK;
+    (first + i as f64 / RATE) * (1.0 + drift * 1e-6) + offset
+}
+
+/// Add a head camera (a simulated GO 3, `size` px) to a session made by [`make_session`]:
+/// `[head]` in `session.toml`, its calibration, in every episode its frames, `meta.json` and
+/// clock, and in `ep0` the outputs' `head.csv` (the head camera's truth on a 30 Hz grid, with
+/// the samples of [`HEAD_GAP`] a gap). Returns the head camera's calibration.
+pub fn add_head_camera(spec: &Synthetic, root: &Path) -> kiwi_core::artifact::UnitCalibration {
+    use kiwi_backend::head::episode::{HEAD_HEADER, HeadTrack};
+    use kiwi_backend::head::track::HeadSample;
+    let unit = kiwi_fixtures::unit::SimUnit::go3("GO3-H", 13, spec.width).unwrap();
+    let cal = unit.true_calibration("2026-01-01");
+    let set = root.join("units/GO3-H/2026-01-01");
+    std::fs::create_dir_all(&set).unwrap();
+    std::fs::write(set.join("calibration.json"), cal.to_json().unwrap()).unwrap();
+    let toml = root.join("session.toml");
+    let text = std::fs::read_to_string(&toml).unwrap().replacen(
+        "\n[[episodes]]",
+        "\n[head]\nunit = \"GO3-H\"\ncalibration = \"units/GO3-H/2026-01-01\"\nmarker_id = 3\n\
+         marker_size_m = 0.08\n\n[[episodes]]",
+        1,
+    );
+    std::fs::write(&toml, text).unwrap();
+    let mount = kiwi_core::head::HeadMount::builtin()
+        .unwrap()
+        .marker_from_cam();
+    // The GO 3's frames are 4:3.
+    let (width, height) = {
+        use kiwi_core::camera::CameraModel;
+        cal.lens("main").unwrap().camera().unwrap().resolution()
+    };
+    for name in ["ep0", "ep1"] {
+        let ep = root.join("episodes").join(name);
+        let cam_dir = ep.join("head");
+        let lens = cam_dir.join("main");
+        std::fs::create_dir_all(lens.join("frames")).unwrap();
+        let meta = CameraMeta {
+            camera: "head".into(),
+            unit_id: "GO3-H".into(),
+            camera_model: "Insta360 GO 3".into(),
+            mode: HEAD_MODE.into(),
+            fps: RATE,
+            lenses: vec!["main".into()],
+            audio_rate_hz: 48000,
+            source: "test".into(),
+            recording: None,
+        };
+        std::fs::write(
+            cam_dir.join("meta.json"),
+            serde_json::to_string_pretty(&meta).unwrap(),
+        )
+        .unwrap();
+        let mut frames = Vec::new();
+        for i in 0..spec.frames {
+            let file = format!("frames/{i:06}.png");
+            image::GrayImage::from_pixel(width, height, image::Luma([grey(1, i) / 2]))
+                .save(lens.join(&file))
+                .unwrap();
+            frames.push(FrameRecord {
+                t: HEAD_CLOCK.0 + i as f64 / RATE,
+                file,
+            });
+        }
+        write_frames_csv(&lens.join("frames.csv"), &frames).unwrap();
+        // The head camera's clock beside the wrists'.
+        let clock = CameraClock {
+            name: "head".into(),
+            offset_s: Some(HEAD_CLOCK.1),
+            drift_ppm: HEAD_CLOCK.2,
+            offset_std_s: 1e-5,
+            status: CameraStatus::OffsetAndDrift,
+        };
+        let quality = ep.join("out/quality.json");
+        let mut record: kiwi_backend::outputs::QualityRecord =
+            serde_json::from_str(&std::fs::read_to_string(&quality).unwrap()).unwrap();
+        if let Some(sync) = record.sync.as_mut() {
+            sync.cameras.push(clock);
+            std::fs::write(
+                ep.join("work/sync/sync.json"),
+                serde_json::to_string_pretty(sync).unwrap(),
+            )
+            .unwrap();
+        }
+        if name == "ep0" {
+            let samples: Vec<HeadSample> = (0..(spec.frames as f64 / RATE * 30.0) as usize)
+                .map(|k| {
+                    let t = k as f64 / 30.0;
+                    HeadSample {
+                        t_session: t,
+                        scene_from_marker: (!HEAD_GAP.contains(&k))
+                            .then(|| truth_head(t) * mount.inverse()),
+                        observations: 6,
+                        from_left: 3,
+                        from_right: 3,
+                        outliers: 0,
+                        sigma_p_m: 0.002,
+                        sigma_r_rad: 0.005,
+                    }
+                })
+                .collect();
+            let (csv, tum) = kiwi_backend::head::episode::track_files(&HeadTrack {
+                samples,
+                marker_from_cam: mount,
+            });
+            assert!(csv.starts_with(HEAD_HEADER));
+            std::fs::write(ep.join("out/head.csv"), csv).unwrap();
+            std::fs::write(ep.join("out/head.tum"), tum).unwrap();
+        }
+        std::fs::write(&quality, serde_json::to_string_pretty(&record).unwrap()).unwrap();
+    }
+    cal
+}

@@ -11,6 +11,15 @@ use kiwi_fixtures::session::{Cover, SessionOptions, write_session};
 /// A session of `episodes` episodes (320 px, 29.97 Hz, no head camera): a 10 s survey that
 /// builds the maps, then 2 s tabletop episodes.
 pub fn small_session(dir: &Path, episodes: usize) -> PathBuf {
+    session_with(dir, episodes, false)
+}
+
+/// [`small_session`] with the head camera and the hat marker.
+pub fn small_session_with_head(dir: &Path, episodes: usize) -> PathBuf {
+    session_with(dir, episodes, true)
+}
+
+fn session_with(dir: &Path, episodes: usize, head: bool) -> PathBuf {
     let mut o = SessionOptions::new(dir);
     o.seed = 5;
     o.resolution = 320;
@@ -20,7 +29,7 @@ pub fn small_session(dir: &Path, episodes: usize) -> PathBuf {
     o.episode_scenarios = vec![Scenario::Survey, Scenario::Tabletop];
     o.episode_durations = vec![10.0, 2.0];
     o.duration_s = 10.0;
-    o.head = false;
+    o.head = head;
     write_session(&o).unwrap().session_toml
 }
 
