@@ -1,8 +1,10 @@
 //! `kiwi run` benchmark: a mapping episode and a tabletop episode recorded with two units
 //! certified from their own simulated captures, reconstructed end to end. Prints the wall time
 //! of every stage and in total, the ratio to the recording's duration, localization frames per
-//! CPU-second over all four streams, the process's peak memory, and the tool-tip accuracy
-//! against the simulator's truth (the same alignment as the end-to-end tests).
+//! CPU-second over all four streams, the process's peak memory, and the tool-tip and head
+//! accuracy against the simulator's truth (the same alignment as the end-to-end tests; the
+//! head's marker track and head camera where the session has the head camera, as simulated
+//! sessions do).
 //!
 //! ```text
 //! cargo bench -p kiwi-e2e --bench pipeline            # 960 px, 119.88 Hz, 60 s + 60 s
@@ -22,7 +24,7 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use common::{SessionSpec, UNITS, alignment, build_session, median_p95, tip_errors};
+use common::{SessionSpec, UNITS, alignment, build_session, head_errors, median_p95, tip_errors};
 use kiwi_backend::outputs::read_quality;
 use kiwi_backend::pipeline::runner::{NoProgress, Outcome, RunReport};
 use kiwi_backend::pipeline::{RunOptions, SessionContext, run};
@@ -241,6 +243,33 @@ fn main() {
                 e.frames,
                 pm * 1e3,
                 p95 * 1e3
+            );
+        }
+        if let Some(h) = head_errors(&session, ep, &world_from_scene) {
+            let stats = |p: &[f64], r: &[f64]| {
+                if p.is_empty() {
+                    return "none compared".to_string();
+                }
+                let (pm, p95) = median_p95(p.to_vec());
+                let (rm, r95) = median_p95(r.to_vec());
+                let worst = p.iter().copied().fold(0.0f64, f64::max);
+                format!(
+                    "position median {:.1} mm, p95 {:.1} mm, worst {:.1} mm; rotation median \
+                     {rm:.2} deg, p95 {r95:.2} deg",
+                    pm * 1e3,
+                    p95 * 1e3,
+                    worst * 1e3
+                )
+            };
+            println!(
+                "    head marker: {} of {} samples posed; {}\n    head camera: {} of {} frames \
+                 posed; {}",
+                h.posed,
+                h.samples,
+                stats(&h.position, &h.rotation_deg),
+                h.camera_posed,
+                h.camera_frames,
+                stats(&h.camera_position, &h.camera_rotation_deg)
             );
         }
     }

@@ -385,3 +385,99 @@ pub fn alignment(session: &Path) -> Pose {
         &truth_frames(session, map_ep, "left", "front"),
     )
 }
+
+/// The head's errors in an episode: the hat marker's track (`out/head.csv`) against
+/// `truth/head_marker_poses.csv`, and the head camera's poses (`out/head_camera.csv`) against
+/// its lens truth, both in the truth world through `world_from_scene`.
+pub struct HeadErrors {
+    /// Track samples, and those posed.
+    pub samples: usize,
+    /// Posed samples.
+    pub posed: usize,
+    /// Marker position errors (m).
+    pub position: Vec<f64>,
+    /// Marker rotation errors (deg).
+    pub rotation_deg: Vec<f64>,
+    /// Head camera frames, and those posed.
+    pub camera_frames: usize,
+    /// Posed head camera frames.
+    pub camera_posed: usize,
+    /// Head camera position errors (m).
+    pub camera_position: Vec<f64>,
+    /// Head camera rotation errors (deg).
+    pub camera_rotation_deg: Vec<f64>,
+}
+
+/// A truth pose at session time `t`, interpolated between rows (`None` outside them).
+fn truth_pose_at(rows: &[(f64, Pose)], t: f64) -> Option<Pose> {
+    let k = rows.partition_point(|r| r.0 <= t);
+    let (a, b) = (rows.get(k.checked_sub(1)?)?, rows.get(k)?);
+    Some(a.1.lerp_slerp(&b.1, (t - a.0) / (b.0 - a.0)))
+}
+
+/// The head's errors of an episode, or `None` when it has no head outputs.
+pub fn head_errors(session: &Path, episode: &str, world_from_scene: &Pose) -> Option<HeadErrors> {
+    let ep = session.join("episodes").join(episode);
+    let track = ep.join("out/head.csv");
+    if !track.is_file() {
+        return None;
+    }
+    let fields = ["px", "py", "pz", "qx", "qy", "qz", "qw"];
+    let marker_truth: Vec<(f64, Pose)> = read_csv(&ep.join("truth/head_marker_poses.csv"))
+        .iter()
+        .map(|r| (nums(r, &["t_session"])[0], pose(&nums(r, &fields))))
+        .collect();
+    let mut e = HeadErrors {
+        samples: 0,
+        posed: 0,
+        position: Vec::new(),
+        rotation_deg: Vec::new(),
+        camera_frames: 0,
+        camera_posed: 0,
+        camera_position: Vec::new(),
+        camera_rotation_deg: Vec::new(),
+    };
+    let marker_fields = fields.map(|f| format!("marker_{f}"));
+    let marker_fields: Vec<&str> = marker_fields.iter().map(String::as_str).collect();
+    for r in read_csv(&track) {
+        e.samples += 1;
+        let v = nums(&r, &marker_fields);
+        if v.iter().any(|x| !x.is_finite()) {
+            continue;
+        }
+        e.posed += 1;
+        let t = nums(&r, &["t_session"])[0];
+        let Some(truth) = truth_pose_at(&marker_truth, t) else {
+            continue;
+        };
+        let est = world_from_scene * pose(&v);
+        e.position
+            .push((est.translation.vector - truth.translation.vector).norm());
+        e.rotation_deg
+            .push(est.rotation.angle_to(&truth.rotation).to_degrees());
+    }
+    let camera_truth: Vec<(f64, Pose)> = truth_frames(session, episode, "head", "main")
+        .iter()
+        .map(|f| (f.t_session, f.world_from_cam))
+        .collect();
+    let cam_fields = fields.map(|f| format!("cam_{f}"));
+    let cam_fields: Vec<&str> = cam_fields.iter().map(String::as_str).collect();
+    for r in read_csv(&ep.join("out/head_camera.csv")) {
+        e.camera_frames += 1;
+        let v = nums(&r, &cam_fields);
+        let t = nums(&r, &["t_session"])[0];
+        if v.iter().any(|x| !x.is_finite()) || !t.is_finite() {
+            continue;
+        }
+        e.camera_posed += 1;
+        let Some(truth) = truth_pose_at(&camera_truth, t) else {
+            continue;
+        };
+        let est = world_from_scene * pose(&v);
+        e.camera_position
+            .push((est.translation.vector - truth.translation.vector).norm());
+        e.camera_rotation_deg
+            .push(est.rotation.angle_to(&truth.rotation).to_degrees());
+    }
+    Some(e)
+}
