@@ -34,10 +34,11 @@ use crate::formats::tables::FusedRow;
 use crate::fusion::FusionStatistics;
 use crate::observations::ObservationCounts;
 use crate::quality::{
-    SUSPECT_GRIPPER_FRACTION, SUSPECT_HEAD_TRACKED_FRACTION, SUSPECT_PLACEMENT_INLIER_FRACTION,
-    SUSPECT_POSITION_SIGMA_M, SUSPECT_RESIDUAL_P95_M, SUSPECT_SUPPORTED_FRACTION,
-    SUSPECT_UNSUPPORTED_RUN_S, Thresholds, UNUSABLE_POSITION_SIGMA_M, UNUSABLE_SUPPORTED_FRACTION,
-    UNUSABLE_UNSUPPORTED_RUN_S, Verdict, VerdictBuilder, longest_unsupported_run,
+    SUSPECT_GRIPPER_FRACTION, SUSPECT_HEAD_SIGMA_P_M, SUSPECT_HEAD_SIGMA_R_RAD,
+    SUSPECT_HEAD_TRACKED_FRACTION, SUSPECT_PLACEMENT_INLIER_FRACTION, SUSPECT_POSITION_SIGMA_M,
+    SUSPECT_RESIDUAL_P95_M, SUSPECT_SUPPORTED_FRACTION, SUSPECT_UNSUPPORTED_RUN_S, Thresholds,
+    UNUSABLE_POSITION_SIGMA_M, UNUSABLE_SUPPORTED_FRACTION, UNUSABLE_UNSUPPORTED_RUN_S, Verdict,
+    VerdictBuilder, longest_unsupported_run,
 };
 use crate::sync::{CameraStatus, SyncResult};
 
@@ -512,6 +513,22 @@ pub fn write_outputs(inputs: &EpisodeInputs, dir: &Path) -> Result<QualityRecord
                      posed in {sighted} of {searched} rear frames",
                     h.posed_fraction * 100.0,
                     SUSPECT_HEAD_TRACKED_FRACTION * 100.0
+                ),
+            );
+        }
+        if let (Some(sp), Some(sr)) = (h.median_sigma_p_m, h.median_sigma_r_rad)
+            && (sp > SUSPECT_HEAD_SIGMA_P_M || sr > SUSPECT_HEAD_SIGMA_R_RAD)
+        {
+            v.add(
+                Verdict::Suspect,
+                format!(
+                    "head: the track's median sigma is {:.1} mm and {:.2} deg (suspect above \
+                     {:.0} mm or {:.0} deg): the hat marker's sightings disagree; record the rear \
+                     lenses at 960 px or use a larger marker",
+                    sp * 1e3,
+                    sr.to_degrees(),
+                    SUSPECT_HEAD_SIGMA_P_M * 1e3,
+                    SUSPECT_HEAD_SIGMA_R_RAD.to_degrees()
                 ),
             );
         }

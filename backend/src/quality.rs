@@ -56,6 +56,12 @@ pub const SUSPECT_GRIPPER_FRACTION: f64 = 0.9;
 /// A head track posed on less than this fraction of the episode is suspect: the operator's
 /// head was out of both rear views (or the marker unreadable) most of the time.
 pub const SUSPECT_HEAD_TRACKED_FRACTION: f64 = 0.5;
+/// A head track whose median position sigma exceeds this (m) is suspect: the head-pose accuracy
+/// target (1 cm).
+pub const SUSPECT_HEAD_SIGMA_P_M: f64 = 0.01;
+/// ... or whose median rotation sigma exceeds this (rad): the target (1°). A hat marker that
+/// spans too few pixels (rear lenses below 960 px) scatters its rotation by degrees.
+pub const SUSPECT_HEAD_SIGMA_R_RAD: f64 = 0.017_453_292_519_943_295;
 
 /// The thresholds, as recorded in every `quality.json`.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -81,10 +87,24 @@ pub struct Thresholds {
     /// [`SUSPECT_HEAD_TRACKED_FRACTION`].
     #[serde(default = "default_head_fraction")]
     pub suspect_head_tracked_fraction: f64,
+    /// [`SUSPECT_HEAD_SIGMA_P_M`].
+    #[serde(default = "default_head_sigma_p")]
+    pub suspect_head_sigma_p_m: f64,
+    /// [`SUSPECT_HEAD_SIGMA_R_RAD`].
+    #[serde(default = "default_head_sigma_r")]
+    pub suspect_head_sigma_r_rad: f64,
 }
 
 fn default_head_fraction() -> f64 {
     SUSPECT_HEAD_TRACKED_FRACTION
+}
+
+fn default_head_sigma_p() -> f64 {
+    SUSPECT_HEAD_SIGMA_P_M
+}
+
+fn default_head_sigma_r() -> f64 {
+    SUSPECT_HEAD_SIGMA_R_RAD
 }
 
 impl Default for Thresholds {
@@ -100,6 +120,8 @@ impl Default for Thresholds {
             suspect_placement_inlier_fraction: SUSPECT_PLACEMENT_INLIER_FRACTION,
             suspect_gripper_fraction: SUSPECT_GRIPPER_FRACTION,
             suspect_head_tracked_fraction: SUSPECT_HEAD_TRACKED_FRACTION,
+            suspect_head_sigma_p_m: SUSPECT_HEAD_SIGMA_P_M,
+            suspect_head_sigma_r_rad: SUSPECT_HEAD_SIGMA_R_RAD,
         }
     }
 }

@@ -243,6 +243,23 @@ impl HeadTrack {
         }
     }
 
+    /// Median position and rotation sigmas of the posed samples (m, rad).
+    pub fn median_sigmas(&self) -> Option<(f64, f64)> {
+        let median = |mut v: Vec<f64>| {
+            v.sort_by(f64::total_cmp);
+            v.get(v.len() / 2).copied()
+        };
+        let posed = || {
+            self.samples
+                .iter()
+                .filter(|s| s.scene_from_marker.is_some())
+        };
+        Some((
+            median(posed().map(|s| s.sigma_p_m).collect())?,
+            median(posed().map(|s| s.sigma_r_rad).collect())?,
+        ))
+    }
+
     /// Fraction of samples posed.
     pub fn posed_fraction(&self) -> f64 {
         if self.samples.is_empty() {
@@ -400,6 +417,10 @@ pub struct HeadSummary {
     pub posed_fraction: f64,
     /// Longest run without a pose (s).
     pub longest_gap_s: f64,
+    /// Median position sigma of the posed samples (m; `None` when none is posed).
+    pub median_sigma_p_m: Option<f64>,
+    /// Median rotation sigma of the posed samples (rad).
+    pub median_sigma_r_rad: Option<f64>,
     /// Head camera frames.
     pub camera_frames: usize,
     /// Of those, posed.
@@ -544,6 +565,7 @@ mod tests {
         assert!((c.sigma_p_m - 0.002f64.hypot(0.01 * lever)).abs() < 1e-12);
         assert!((track.posed_fraction() - 0.75).abs() < 1e-12);
         assert!((track.longest_gap_s() - 0.1).abs() < 1e-12);
+        assert_eq!(track.median_sigmas(), Some((0.002, 0.01)));
         let (csv, tum) = track_files(&track);
         // head.csv reads back to the same camera track.
         let dir = tempfile::tempdir().unwrap();

@@ -1106,6 +1106,8 @@ fn run_head(env: &StageEnv<'_>, episode: &str) -> Result<()> {
         rate_hz: options.rate_hz,
         posed_fraction: track.posed_fraction(),
         longest_gap_s: track.longest_gap_s(),
+        median_sigma_p_m: track.median_sigmas().map(|s| s.0),
+        median_sigma_r_rad: track.median_sigmas().map(|s| s.1),
         camera_frames: frame_times.len(),
         camera_frames_posed,
     };

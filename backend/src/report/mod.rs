@@ -1,8 +1,8 @@
 //! The session report (`kiwi report`, and the `report` stage that ends `kiwi run`): one
 //! self-contained HTML page per session, for a lab to check a session by looking at it.
 //!
-//! Per episode: a top view of both tool tips' paths (and the head's, once a head stage writes
-//! `out/head.tum`) over the scene map's landmarks, coloured by support class; a support
+//! Per episode: a top view of both tool tips' paths (and the head camera's, from the head
+//! stage's `out/head.tum`) over the scene map's landmarks, coloured by support class; a support
 //! timeline per stream (each wrist's support class, each lens localized or lost with the
 //! reason); the sync graph (cameras, pair lags and drifts, triangle closures); the gripper
 //! openings over time; the quality verdict with its reasons; and the stage timings from the
@@ -35,8 +35,8 @@ use crate::sync::SyncResult;
 pub const REPORT_DIR: &str = "report";
 /// The page inside it.
 pub const PAGE_FILE: &str = "index.html";
-/// The head camera's path in an episode's `out/` (TUM: `t x y z qx qy qz qw`), drawn when a head
-/// stage has written it.
+/// The head camera's path in an episode's `out/` (TUM: `t x y z qx qy qz qw`), drawn when the
+/// session has a head camera.
 pub const HEAD_PATH_FILE: &str = "head.tum";
 
 /// One wrist of the session.
@@ -117,7 +117,7 @@ pub struct EpisodeReport {
     pub quality: Option<QualityRecord>,
     /// Both wrists' trajectories (empty when the outputs failed).
     pub wrists: Vec<WristTrack>,
-    /// The head's path (session time, position), when a head stage wrote one.
+    /// The head camera's path (session time, position), when the session has a head camera.
     pub head: Option<Vec<(f64, [f64; 3])>>,
     /// Every wrist lens's localizations.
     pub lenses: Vec<LensTrack>,
