@@ -437,6 +437,17 @@ pub fn head_errors(session: &Path, episode: &str, world_from_scene: &Pose) -> Op
         camera_position: Vec::new(),
         camera_rotation_deg: Vec::new(),
     };
+    // The pipeline's session timeline starts at its reference camera's clock; the simulator's
+    // has its own origin. The left front camera's frames, known on both, give the difference.
+    let left = truth_frames(session, episode, "left", "front");
+    let mut shifts: Vec<f64> = out_rows(session, episode, "left")
+        .iter()
+        .filter_map(|r| Some(truth_at(&left, r.t_camera)?.t_session - r.t_session?))
+        .collect();
+    if shifts.is_empty() {
+        return None;
+    }
+    let (to_truth, _) = median_p95(std::mem::take(&mut shifts));
     let marker_fields = fields.map(|f| format!("marker_{f}"));
     let marker_fields: Vec<&str> = marker_fields.iter().map(String::as_str).collect();
     for r in read_csv(&track) {
@@ -446,7 +457,7 @@ pub fn head_errors(session: &Path, episode: &str, world_from_scene: &Pose) -> Op
             continue;
         }
         e.posed += 1;
-        let t = nums(&r, &["t_session"])[0];
+        let t = nums(&r, &["t_session"])[0] + to_truth;
         let Some(truth) = truth_pose_at(&marker_truth, t) else {
             continue;
         };
@@ -456,21 +467,20 @@ pub fn head_errors(session: &Path, episode: &str, world_from_scene: &Pose) -> Op
         e.rotation_deg
             .push(est.rotation.angle_to(&truth.rotation).to_degrees());
     }
-    let camera_truth: Vec<(f64, Pose)> = truth_frames(session, episode, "head", "main")
-        .iter()
-        .map(|f| (f.t_session, f.world_from_cam))
-        .collect();
+    // The head camera's frames by their own clock, as the wrists' are compared.
+    let camera_truth = truth_frames(session, episode, "head", "main");
     let cam_fields = fields.map(|f| format!("cam_{f}"));
     let cam_fields: Vec<&str> = cam_fields.iter().map(String::as_str).collect();
     for r in read_csv(&ep.join("out/head_camera.csv")) {
         e.camera_frames += 1;
         let v = nums(&r, &cam_fields);
-        let t = nums(&r, &["t_session"])[0];
-        if v.iter().any(|x| !x.is_finite()) || !t.is_finite() {
+        if v.iter().any(|x| !x.is_finite()) {
             continue;
         }
         e.camera_posed += 1;
-        let Some(truth) = truth_pose_at(&camera_truth, t) else {
+        let Some(truth) =
+            truth_at(&camera_truth, nums(&r, &["t_camera"])[0]).map(|f| f.world_from_cam)
+        else {
             continue;
         };
         let est = world_from_scene * pose(&v);
