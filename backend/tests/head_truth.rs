@@ -134,6 +134,10 @@ fn the_head_track_and_camera_from_both_rear_lenses_match_the_truth() {
         frames += counts.frames;
         found += counts.found;
         accepted += counts.accepted;
+        assert_eq!(
+            counts.too_small, 0,
+            "{camera}: every sighting is large enough at 960 px"
+        );
         ambiguous += counts.ambiguous;
         // The wrist's true IMU trajectory as its fused nodes, on its IMU clock.
         let imu = truth_rows(&truth_dir.join(camera).join("imu_states.csv"));

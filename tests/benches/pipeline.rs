@@ -253,9 +253,10 @@ fn main() {
                 let (pm, p95) = median_p95(p.to_vec());
                 let (rm, r95) = median_p95(r.to_vec());
                 let worst = p.iter().copied().fold(0.0f64, f64::max);
+                let worst_r = r.iter().copied().fold(0.0f64, f64::max);
                 format!(
                     "position median {:.1} mm, p95 {:.1} mm, worst {:.1} mm; rotation median \
-                     {rm:.2} deg, p95 {r95:.2} deg",
+                     {rm:.2} deg, p95 {r95:.2} deg, worst {worst_r:.2} deg",
                     pm * 1e3,
                     p95 * 1e3,
                     worst * 1e3

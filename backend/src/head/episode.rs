@@ -22,7 +22,9 @@ use crate::fusion::FusedNode;
 use crate::outputs::session_time;
 use crate::sync::CameraClock;
 
-use super::marker::{MarkerFinder, Resolved, SquarePoses, resolve, square_poses};
+use super::marker::{
+    MIN_MARKER_SIZE_PX, MarkerFinder, Resolved, SquarePoses, resolve, square_poses,
+};
 use super::track::{HeadObservation, HeadSample, observe};
 
 /// A previous sighting older than this (s) does not resolve a planar ambiguity: wrist and head
@@ -54,6 +56,9 @@ pub struct SightingCounts {
     pub frames: usize,
     /// Frames where the marker was found.
     pub found: usize,
+    /// Sightings too small on the image to pose ([`super::marker::MIN_MARKER_SIZE_PX`]).
+    #[serde(default)]
+    pub too_small: usize,
     /// Sightings with an accepted pose.
     pub accepted: usize,
     /// Of those, resolved by a previous sighting.
@@ -77,15 +82,24 @@ pub fn find_sightings(
     tick: &(dyn Fn() + Sync),
 ) -> Result<(Vec<Sighting>, SightingCounts)> {
     let indices: Vec<usize> = (0..source.len()).collect();
-    type Found = Option<(SquarePoses, f64)>;
-    let per_frame: Vec<Result<(bool, Found)>> = source.map_color(&indices, |_, image| {
+    /// What one frame gave: nothing, a marker too small to pose, or its poses and row.
+    enum Seen {
+        Nothing,
+        TooSmall,
+        Posed(Option<(SquarePoses, f64)>),
+    }
+    let per_frame: Vec<Result<Seen>> = source.map_color(&indices, |_, image| {
         let result = (|| {
             let Some(corners) = finder.find(&image?)? else {
-                return Ok((false, None));
+                return Ok(Seen::Nothing);
             };
+            if finder.size_px(&corners).unwrap_or(0.0) < MIN_MARKER_SIZE_PX {
+                return Ok(Seen::TooSmall);
+            }
+            // A centre the lens cannot project is not a marker the detector found; the middle
+            // row is then the best guess of its time.
             let row = finder.row_fraction(&corners).unwrap_or(0.5);
-            Ok((
-                true,
+            Ok(Seen::Posed(
                 square_poses(&corners, marker_size_m)?.map(|poses| (poses, row)),
             ))
         })();
@@ -98,11 +112,22 @@ pub fn find_sightings(
     };
     let mut sightings = Vec::new();
     let mut previous: Option<(f64, Pose)> = None;
-    for (frame, (record, found)) in source.frames().iter().zip(per_frame).enumerate() {
-        let (seen, poses) = found?;
-        counts.found += usize::from(seen);
-        let Some((poses, row)) = poses else {
-            continue;
+    for (frame, (record, seen)) in source.frames().iter().zip(per_frame).enumerate() {
+        let (poses, row) = match seen? {
+            Seen::Nothing => continue,
+            Seen::TooSmall => {
+                counts.found += 1;
+                counts.too_small += 1;
+                continue;
+            }
+            Seen::Posed(None) => {
+                counts.found += 1;
+                continue;
+            }
+            Seen::Posed(Some(p)) => {
+                counts.found += 1;
+                p
+            }
         };
         let t_camera = record.t + readout_s * row;
         let recent = previous

@@ -46,6 +46,11 @@ pub const TEMPORAL_MARGIN_FACTOR: f64 = 2.0;
 /// explains the corners better than this is no better than one at this error, so the
 /// ambiguity ratio is taken over at least this much (two near-perfect fits are ambiguous).
 pub const CORNER_NOISE_RAD: f64 = 3e-4;
+/// Smallest marker that is posed (px, the square root of its area on the image): below this
+/// IPPE's rotation errs by degrees and its branch choice is unreliable even at a clear ratio
+/// (measured at 960 px: 12-22 px sightings 50-110 mm and 6-109 deg off, one a wrong branch at
+/// ratio 6; 25-40 px sightings within 12.5 mm; at 480 px, 16 px markers erred by 5-30 deg).
+pub const MIN_MARKER_SIZE_PX: f64 = 25.0;
 /// Largest RMS angle (rad) between the corners' bearings and the accepted pose's: about
 /// three pixels at 960 px on a 190° lens; worse means a misdetection.
 pub const MAX_CORNER_ERROR_RAD: f64 = 0.01;
@@ -292,6 +297,22 @@ impl MarkerFinder {
             order: ChannelOrder::Bgr,
         };
         Ok(Some(self.refine(&view, &rough)?.unwrap_or(rough)))
+    }
+
+    /// The marker's size on the image (px): the square root of the area of its corners'
+    /// quadrilateral in the fisheye image, so foreshortening counts.
+    pub fn size_px(&self, corners: &[Vector3<f64>; 4]) -> Option<f64> {
+        let mut px = [nalgebra::Point2::origin(); 4];
+        for (p, b) in px.iter_mut().zip(corners) {
+            *p = self.camera.project(b)?;
+        }
+        let twice_area: f64 = (0..4)
+            .map(|k| {
+                let (a, b) = (px[k], px[(k + 1) % 4]);
+                a.x * b.y - b.x * a.y
+            })
+            .sum();
+        Some((twice_area.abs() / 2.0).sqrt())
     }
 
     /// Where in the frame's readout the marker was exposed: its centre's image row over the

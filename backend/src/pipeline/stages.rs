@@ -70,7 +70,7 @@ pub fn version(kind: &StageKind) -> &'static str {
         StageKind::Observations { .. } => "observations-2",
         StageKind::Fusion { .. } => "fusion-3",
         StageKind::Gripper { .. } => "gripper-1",
-        StageKind::Head { .. } => "head-1",
+        StageKind::Head { .. } => "head-2",
         StageKind::Outputs { .. } => "outputs-2",
         StageKind::Export { .. } => "export-1",
         StageKind::Report => "report-1",
@@ -110,6 +110,7 @@ pub fn parameters(kind: &StageKind) -> serde_json::Value {
                 "min_observations": o.min_observations,
                 "min_ambiguity_ratio": crate::head::marker::MIN_AMBIGUITY_RATIO,
                 "max_corner_error_rad": crate::head::marker::MAX_CORNER_ERROR_RAD,
+                "min_marker_size_px": crate::head::marker::MIN_MARKER_SIZE_PX,
                 "previous_sighting_max_age_s": crate::head::episode::PREVIOUS_SIGHTING_MAX_AGE_S,
                 "max_node_gap_s": crate::head::episode::MAX_NODE_GAP_S,
             })
