@@ -263,7 +263,8 @@ pub fn session_time(clock: Option<&crate::sync::CameraClock>, t: f64) -> Option<
         })
 }
 
-fn pose_fields(s: &mut String, pose: &Pose) {
+/// Append a pose as `px,py,pz,qx,qy,qz,qw` (micrometres, 1e-9 on the quaternion).
+pub(crate) fn pose_fields(s: &mut String, pose: &Pose) {
     let p = pose.translation.vector;
     let q = pose.rotation.coords;
     let _ = write!(
@@ -273,7 +274,8 @@ fn pose_fields(s: &mut String, pose: &Pose) {
     );
 }
 
-fn tum_line(s: &mut String, t: f64, pose: &Pose) {
+/// Append a TUM line `t tx ty tz qx qy qz qw`.
+pub(crate) fn tum_line(s: &mut String, t: f64, pose: &Pose) {
     let p = pose.translation.vector;
     let q = pose.rotation.coords;
     let _ = writeln!(

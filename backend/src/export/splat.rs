@@ -658,35 +658,22 @@ fn pose_episode(
                         unposed += 1;
                         continue;
                     };
-                    let lens = &lenses[li];
-                    let id = scene.images.len() as u32 + 1;
+                    let image = Shot {
+                        ep: &ep.name,
+                        lens: li,
+                        view: &lenses[li].view,
+                        frame,
+                        scene_from_cam: cam.scene_from_cam,
+                        points2d: Vec::new(),
+                        test: group.is_multiple_of(SPLIT_EVERY),
+                        openings: Vec::new(),
+                    };
+                    let id = add_image(scene, &mut written, image);
                     scene.frames.push(RigFrame {
                         id: scene.frames.len() as u32 + 1,
                         rig: r,
                         ref_from_scene: cam.scene_from_cam.inverse(),
                         images: vec![id],
-                    });
-                    let stem = format!(
-                        "{}/{}_{}/{frame:06}",
-                        ep.name, lens.view.camera, lens.view.lens
-                    );
-                    let name = format!("{stem}.png");
-                    let mask_name = format!("{stem}{MASK_SUFFIX}");
-                    scene.images.push(SceneImage {
-                        id,
-                        lens: li,
-                        name: name.clone(),
-                        scene_from_cam: cam.scene_from_cam,
-                        mask_name: mask_name.clone(),
-                        points2d: Vec::new(),
-                        test: group.is_multiple_of(SPLIT_EVERY),
-                    });
-                    written[li].push(Picked {
-                        frame,
-                        image: scene.images.len() - 1,
-                        name,
-                        mask_name,
-                        openings: Vec::new(),
                     });
                 }
                 continue;
@@ -739,34 +726,21 @@ fn pose_episode(
                     }
                 };
                 let lens = &lenses[li];
-                let id = scene.images.len() as u32 + 1;
-                scene.frames[frame_index].images.push(id);
-                let stem = format!(
-                    "{}/{}_{}/{frame:06}",
-                    ep.name, lens.view.camera, lens.view.lens
-                );
-                let name = format!("{stem}.png");
-                let mask_name = format!("{stem}{MASK_SUFFIX}");
-                let points2d = observations(maps, &ep.name, &lens.view, frame);
-                scene.images.push(SceneImage {
-                    id,
+                let image = Shot {
+                    ep: &ep.name,
                     lens: li,
-                    name: name.clone(),
-                    scene_from_cam: scene_from_front * lens.front_from_lens,
-                    mask_name: mask_name.clone(),
-                    points2d,
-                    test: group.is_multiple_of(SPLIT_EVERY),
-                });
-                written[li].push(Picked {
+                    view: &lens.view,
                     frame,
-                    image: scene.images.len() - 1,
-                    name,
-                    mask_name,
+                    scene_from_cam: scene_from_front * lens.front_from_lens,
+                    points2d: observations(maps, &ep.name, &lens.view, frame),
+                    test: group.is_multiple_of(SPLIT_EVERY),
                     openings: lens
                         .tool
                         .as_ref()
                         .map_or_else(Vec::new, |tool| mask_openings(tool, opening, confidence)),
-                });
+                };
+                let id = add_image(scene, &mut written, image);
+                scene.frames[frame_index].images.push(id);
             }
         }
     }
@@ -838,6 +812,47 @@ fn pose_episode(
         )?;
     }
     Ok((times.len(), unposed))
+}
+
+/// A posed frame about to become an exported image.
+struct Shot<'a> {
+    ep: &'a str,
+    lens: usize,
+    view: &'a View,
+    frame: usize,
+    scene_from_cam: Pose,
+    points2d: Vec<([f64; 2], u64)>,
+    test: bool,
+    /// The gripper openings whose jaws its mask covers (none on the head camera).
+    openings: Vec<f64>,
+}
+
+/// Add an image to the scene and to its lens's frames to write; returns its id.
+fn add_image(scene: &mut Scene, written: &mut [Vec<Picked>], shot: Shot<'_>) -> u32 {
+    let id = scene.images.len() as u32 + 1;
+    let stem = format!(
+        "{}/{}_{}/{:06}",
+        shot.ep, shot.view.camera, shot.view.lens, shot.frame
+    );
+    let name = format!("{stem}.png");
+    let mask_name = format!("{stem}{MASK_SUFFIX}");
+    scene.images.push(SceneImage {
+        id,
+        lens: shot.lens,
+        name: name.clone(),
+        scene_from_cam: shot.scene_from_cam,
+        mask_name: mask_name.clone(),
+        points2d: shot.points2d,
+        test: shot.test,
+    });
+    written[shot.lens].push(Picked {
+        frame: shot.frame,
+        image: scene.images.len() - 1,
+        name,
+        mask_name,
+        openings: shot.openings,
+    });
+    id
 }
 
 /// A sampled frame that got a pose.

@@ -19,7 +19,7 @@ use kiwi_core::layout::Side;
 use crate::error::Result;
 use crate::frames::FrameSource;
 use crate::fusion::FusedNode;
-use crate::outputs::session_time;
+use crate::outputs::{pose_fields, session_time, tum_line};
 use crate::sync::CameraClock;
 
 use super::marker::{
@@ -461,16 +461,6 @@ marker_sigma_r_rad,cam_sigma_p_m,observations,from_left,from_right,outliers";
 pub const HEAD_CAMERA_HEADER: &str = "frame,t_camera,t_session,cam_px,cam_py,cam_pz,cam_qx,cam_qy,cam_qz,cam_qw,cam_sigma_p_m,\
 cam_sigma_r_rad";
 
-fn pose_fields(s: &mut String, pose: &Pose) {
-    let p = pose.translation.vector;
-    let q = pose.rotation.coords;
-    let _ = write!(
-        s,
-        "{:.6},{:.6},{:.6},{:.9},{:.9},{:.9},{:.9}",
-        p.x, p.y, p.z, q.x, q.y, q.z, q.w
-    );
-}
-
 /// `head.csv` (every sample; pose fields empty in gaps) and `head.tum` (the head camera at
 /// every posed sample, `t x y z qx qy qz qw`).
 pub fn track_files(track: &HeadTrack) -> (String, String) {
@@ -490,14 +480,7 @@ pub fn track_files(track: &HeadTrack) -> (String, String) {
                     ",{:.3e},{:.3e},{:.3e}",
                     s.sigma_p_m, s.sigma_r_rad, cam.sigma_p_m
                 );
-                let _ = write!(tum, "{:.6} ", s.t_session);
-                let p = cam.scene_from_cam.translation.vector;
-                let q = cam.scene_from_cam.rotation.coords;
-                let _ = writeln!(
-                    tum,
-                    "{:.6} {:.6} {:.6} {:.9} {:.9} {:.9} {:.9}",
-                    p.x, p.y, p.z, q.x, q.y, q.z, q.w
-                );
+                tum_line(&mut tum, s.t_session, &cam.scene_from_cam);
             }
             _ => csv.push_str(",,,,,,,,,,,,,,,,"),
         }

@@ -1004,13 +1004,7 @@ fn run_head(env: &StageEnv<'_>, episode: &str) -> Result<()> {
             "has no [head]: the head stage needs the head camera and its hat marker".into(),
         ));
     };
-    let sync: crate::sync::SyncResult = read_json_file(
-        &env.dep_dir(&StageKind::Sync {
-            episode: episode.to_string(),
-        })
-        .join(SYNC_FILE),
-        "sync result",
-    )?;
+    let sync = sync_of(env, episode)?;
     let clock_of = |name: &str| sync.cameras.iter().find(|c| c.name == name);
     let layout = ctx.episode(episode);
     let (mount, mount_source) = head_mount(ctx)?;
@@ -1246,15 +1240,20 @@ fn opening_series(dir: &Path) -> Result<Option<crate::outputs::OpeningSeries>> {
     }))
 }
 
-fn run_outputs(env: &StageEnv<'_>, episode: &str) -> Result<()> {
-    let ctx = env.ctx;
-    let sync: crate::sync::SyncResult = read_json_file(
+/// The episode's sync result, from its `sync` stage.
+fn sync_of(env: &StageEnv<'_>, episode: &str) -> Result<crate::sync::SyncResult> {
+    read_json_file(
         &env.dep_dir(&StageKind::Sync {
             episode: episode.to_string(),
         })
         .join(SYNC_FILE),
         "sync result",
-    )?;
+    )
+}
+
+fn run_outputs(env: &StageEnv<'_>, episode: &str) -> Result<()> {
+    let ctx = env.ctx;
+    let sync = sync_of(env, episode)?;
     let mut metric = std::collections::BTreeMap::new();
     let mut maps = vec![MapName::Rear];
     maps.extend(ctx.wrists.keys().map(|&s| MapName::Front(s)));
