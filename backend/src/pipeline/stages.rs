@@ -1024,13 +1024,7 @@ fn run_head(env: &StageEnv<'_>, episode: &str) -> Result<()> {
     let mut wrists = std::collections::BTreeMap::new();
     let (mut t0, mut t1) = (f64::INFINITY, f64::NEG_INFINITY);
     for ((&side, w), source) in ctx.wrists.iter().zip(&sources) {
-        let fused = read_fused(
-            &env.dep_dir(&StageKind::Fusion {
-                episode: episode.to_string(),
-                side,
-            })
-            .join(FUSED_FILE),
-        )?;
+        let fused = fused_of(env, episode, side)?;
         let clock = clock_of(w.camera);
         for row in &fused {
             if let Some(t) = crate::outputs::session_time(clock, row.t_camera) {
@@ -1240,6 +1234,21 @@ fn opening_series(dir: &Path) -> Result<Option<crate::outputs::OpeningSeries>> {
     }))
 }
 
+/// A wrist's fused trajectory in an episode, from its `fusion` stage.
+fn fused_of(
+    env: &StageEnv<'_>,
+    episode: &str,
+    side: Side,
+) -> Result<Vec<crate::formats::tables::FusedRow>> {
+    read_fused(
+        &env.dep_dir(&StageKind::Fusion {
+            episode: episode.to_string(),
+            side,
+        })
+        .join(FUSED_FILE),
+    )
+}
+
 /// The episode's sync result, from its `sync` stage.
 fn sync_of(env: &StageEnv<'_>, episode: &str) -> Result<crate::sync::SyncResult> {
     read_json_file(
@@ -1262,13 +1271,7 @@ fn run_outputs(env: &StageEnv<'_>, episode: &str) -> Result<()> {
     }
     let mut wrists = Vec::new();
     for (&side, w) in &ctx.wrists {
-        let fused = read_fused(
-            &env.dep_dir(&StageKind::Fusion {
-                episode: episode.to_string(),
-                side,
-            })
-            .join(FUSED_FILE),
-        )?;
+        let fused = fused_of(env, episode, side)?;
         let loc = |lens: Lens| {
             localization_record(
                 &env.dep_dir(&StageKind::Localize {
