@@ -1287,7 +1287,18 @@ mod tests {
             "{} is not what hardware/params.toml gives: run `make hardware`",
             hat.display()
         );
-        assert_eq!(HeadMount::builtin().unwrap(), params().head_mount());
+        // The built-in mount is that file, and the parameters' mount to its 1e-9 rounding.
+        let builtin = HeadMount::builtin().unwrap();
+        assert_eq!(
+            builtin,
+            HeadMount::parse(&generated.head_mount, Path::new("x")).unwrap()
+        );
+        let exact = params().head_mount().marker_from_cam.to_pose();
+        let written = builtin.marker_from_cam();
+        assert!(
+            (exact.translation.vector - written.translation.vector).norm() < 1e-9
+                && exact.rotation.angle_to(&written.rotation) < 1e-9
+        );
         // The built-in definitions the simulator and estimator use are these files.
         for kind in [
             ToolKind::Chopstick,
