@@ -1087,6 +1087,7 @@ fn run_head(env: &StageEnv<'_>, episode: &str) -> Result<()> {
     write_atomic(&env.out.join(track_name), track_csv.as_bytes())?;
     write_atomic(&env.out.join(tum_name), track_tum.as_bytes())?;
     write_atomic(&env.out.join(camera_name), camera_csv.as_bytes())?;
+    let sigmas = track.median_sigmas();
     let summary = HeadSummary {
         mount: mount_source,
         wrists,
@@ -1095,8 +1096,8 @@ fn run_head(env: &StageEnv<'_>, episode: &str) -> Result<()> {
         rate_hz: options.rate_hz,
         posed_fraction: track.posed_fraction(),
         longest_gap_s: track.longest_gap_s(),
-        median_sigma_p_m: track.median_sigmas().map(|s| s.0),
-        median_sigma_r_rad: track.median_sigmas().map(|s| s.1),
+        median_sigma_p_m: sigmas.map(|s| s.0),
+        median_sigma_r_rad: sigmas.map(|s| s.1),
         camera_frames: frame_times.len(),
         camera_frames_posed,
     };

@@ -104,11 +104,9 @@ fn write_episode(spec: &Synthetic, root: &Path, name: &str, verdict: Verdict) {
             source: "test".into(),
             recording: None,
         };
-        std::fs::write(
-            cam_dir.join("meta.json"),
-            serde_json::to_string_pretty(&meta).unwrap(),
-        )
-        .unwrap();
+        kiwi_core::layout::EpisodeLayout::new(&ep)
+            .write_meta(&meta)
+            .unwrap();
         let mut frames = Vec::new();
         let mut csv = format!("{TRAJECTORY_HEADER}\n");
         for i in 0..spec.frames {
@@ -552,11 +550,9 @@ pub fn add_head_camera(spec: &Synthetic, root: &Path) -> kiwi_core::artifact::Un
             source: "test".into(),
             recording: None,
         };
-        std::fs::write(
-            cam_dir.join("meta.json"),
-            serde_json::to_string_pretty(&meta).unwrap(),
-        )
-        .unwrap();
+        kiwi_core::layout::EpisodeLayout::new(&ep)
+            .write_meta(&meta)
+            .unwrap();
         let mut frames = Vec::new();
         for i in 0..spec.frames {
             let file = format!("frames/{i:06}.png");
