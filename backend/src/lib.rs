@@ -12,6 +12,7 @@
 pub mod batch;
 pub mod error;
 pub mod export;
+pub mod floor;
 pub mod formats;
 pub mod frames;
 pub mod fusion;

@@ -1,0 +1,575 @@
+//! The floor reference (paper §4.3.3, eq. 6): short windows of a wrist's front video that look
+//! down while the camera moves sideways; in each, a photometric plane sweep ([`sweep`]) and
+//! rectified motion stereo ([`stereo`]) propose horizontal surfaces, each channel picks the
+//! lowest well-supported one inside the camera-to-floor band, agreeing channels are combined
+//! and conflicting ones reject the window; windows that stray from their neighbours are
+//! rejected, and a weighted median over both wrists gives the episode's floor height. The other
+//! supported surfaces (a table) are reported beside it.
+
+pub mod figure;
+pub mod stereo;
+pub mod sweep;
+pub mod view;
+
+use serde::{Deserialize, Serialize};
+
+use kiwi_core::camera::{Camera, CameraModel};
+use kiwi_core::geometry::Pose;
+use kiwi_core::layout::Side;
+
+use crate::error::Result;
+use crate::frames::FrameSource;
+use crate::fusion::FusedNode;
+use crate::head::episode::imu_pose_at;
+use crate::sync::CameraClock;
+
+use stereo::{StereoOptions, stereo};
+use sweep::{SweepOptions, sweep};
+use view::{PosedView, Surface};
+
+/// How the floor is sought.
+#[derive(Debug, Clone, Copy, Serialize, Deserialize)]
+pub struct FloorOptions {
+    /// Camera-to-floor heights the floor may be at (m): the lowest supported surface inside
+    /// is the floor.
+    pub camera_height_m: [f64; 2],
+    /// Length of a window of front video (s).
+    pub window_s: f64,
+    /// Most windows per wrist (spread over the episode; bounds the cost).
+    pub max_windows: usize,
+    /// The plane sweep channel.
+    pub sweep: SweepOptions,
+    /// The motion stereo channel.
+    pub stereo: StereoOptions,
+}
+
+impl Default for FloorOptions {
+    fn default() -> Self {
+        Self {
+            camera_height_m: DEFAULT_CAMERA_HEIGHT_M,
+            window_s: 1.0,
+            max_windows: 16,
+            sweep: SweepOptions::default(),
+            stereo: StereoOptions::default(),
+        }
+    }
+}
+
+/// Default camera-to-floor band (m): a wrist from a crouch at the floor to arms raised.
+pub const DEFAULT_CAMERA_HEIGHT_M: [f64; 2] = [0.2, 2.2];
+/// A window needs this share of its reference frame's directions looking within the sweep's
+/// nadir angle (a frame looking level or up sees the floor only at grazing angles).
+const MIN_DOWNWARD_SHARE: f64 = 0.1;
+/// Frames whose camera moved less than this sideways from the reference give no depth (m).
+const MIN_BASELINE_M: f64 = 0.03;
+/// Baseline sought for the stereo pair (m): wide enough for sub-centimetre heights at 1 m,
+/// short enough that the two views still overlap on the ground.
+const STEREO_BASELINE_M: f64 = 0.12;
+/// Other frames the sweep compares with the reference.
+const SWEEP_VIEWS: usize = 4;
+/// Two channels agree when their floors are this close, or within three joint sigmas (m).
+const CHANNELS_AGREE_M: f64 = 0.02;
+/// A channel's height sigma is at least this (m): the votes' spread understates the model's
+/// own error (calibration, pose).
+const MIN_SIGMA_M: f64 = 0.002;
+/// A window strays when its floor is this far from the median of its neighbours (m).
+const OUTLIER_M: f64 = 0.03;
+/// Neighbours on each side a window's floor is compared with.
+const NEIGHBOURS: usize = 3;
+/// Surfaces of different windows within this of each other are one surface (m).
+const SURFACE_CLUSTER_M: f64 = 0.03;
+/// A surface above the floor is reported when this share of the accepted windows saw it.
+const MIN_SURFACE_WINDOWS_SHARE: f64 = 0.2;
+/// Surfaces closer than this above the floor are the floor itself (m).
+const MIN_ABOVE_FLOOR_M: f64 = 0.05;
+
+/// A wrist's front lens on its fused trajectory.
+#[derive(Debug, Clone, Copy)]
+pub struct FrontLens<'a> {
+    /// Which wrist.
+    pub side: Side,
+    /// Fused nodes in time order (IMU clock).
+    pub nodes: &'a [FusedNode],
+    /// The front lens's `cam_from_imu`.
+    pub cam_from_imu: Pose,
+    /// The front lens's frame time shift to the IMU clock (s).
+    pub time_shift_s: f64,
+    /// Rolling readout of the recording mode (s; 0 for a global shutter).
+    pub readout_s: f64,
+    /// The lens model.
+    pub camera: &'a Camera,
+    /// The wrist camera's clock on the session timeline.
+    pub clock: Option<&'a CameraClock>,
+}
+
+impl FrontLens<'_> {
+    /// `scene_from_cam` of a frame taken at camera time `t` at row fraction `row`.
+    fn pose(&self, t: f64, row: f64) -> Option<Pose> {
+        let imu = imu_pose_at(self.nodes, t + self.time_shift_s + self.readout_s * row)?;
+        Some(imu * self.cam_from_imu.inverse())
+    }
+}
+
+/// What became of a window.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum WindowStatus {
+    /// It gave a floor height.
+    Accepted,
+    /// Neither channel found a supported surface in the band.
+    NoSurface,
+    /// The two channels found different floors.
+    Conflict,
+    /// Its floor strayed from its neighbours'.
+    Outlier,
+}
+
+/// One window's result.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct WindowEstimate {
+    /// Which wrist.
+    pub side: Side,
+    /// Reference frame index.
+    pub frame: usize,
+    /// Its time on the camera clock (s).
+    pub t_camera: f64,
+    /// Its time on the session timeline (s), when the camera is on it.
+    pub t_session: Option<f64>,
+    /// The reference camera's scene height (m).
+    pub camera_z_m: f64,
+    /// Sideways baseline of the widest frame compared (m).
+    pub baseline_m: f64,
+    /// The sweep's surfaces, lowest first.
+    pub sweep: Vec<Surface>,
+    /// The stereo pair's surfaces, lowest first.
+    pub stereo: Vec<Surface>,
+    /// The sweep's support per camera-to-plane distance (m, share), for the figure.
+    #[serde(skip)]
+    pub sweep_support: Vec<[f64; 2]>,
+    /// The window's floor height (scene z, m) and its sigma, when accepted.
+    pub floor_z_m: Option<f64>,
+    /// Sigma of `floor_z_m` (m).
+    pub sigma_m: Option<f64>,
+    /// What became of it.
+    pub status: WindowStatus,
+}
+
+/// Why a wrist's windows were too few.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct WindowCounts {
+    /// Windows the episode has.
+    pub windows: usize,
+    /// Of those, without a fused pose.
+    pub unposed: usize,
+    /// Not looking down.
+    pub not_looking_down: usize,
+    /// Without sideways motion.
+    pub no_baseline: usize,
+    /// Swept (the others beyond the window budget were skipped).
+    pub swept: usize,
+}
+
+/// A window of frames chosen for the channels.
+struct Window {
+    reference: usize,
+    sweep_views: Vec<usize>,
+    stereo_view: usize,
+    baseline_m: f64,
+}
+
+/// Share of the lens's directions (on a coarse pixel grid) within `max_nadir` of straight down
+/// from `scene_from_cam`.
+fn downward_share(camera: &Camera, scene_from_cam: &Pose, max_nadir: f64) -> f64 {
+    const GRID: u32 = 16;
+    let (w, h) = camera.resolution();
+    let (mut inside, mut down) = (0usize, 0usize);
+    for j in 0..GRID {
+        for i in 0..GRID {
+            let p = nalgebra::Point2::new(
+                (f64::from(i) + 0.5) * f64::from(w) / f64::from(GRID),
+                (f64::from(j) + 0.5) * f64::from(h) / f64::from(GRID),
+            );
+            if let Some(b) = camera.unproject(&p) {
+                inside += 1;
+                if (scene_from_cam.rotation * b.into_inner()).z < -max_nadir.cos() {
+                    down += 1;
+                }
+            }
+        }
+    }
+    down as f64 / inside.max(1) as f64
+}
+
+/// The windows of a wrist's front stream worth sweeping, at most `max_windows` spread evenly.
+fn choose_windows(
+    lens: &FrontLens<'_>,
+    times: &[f64],
+    o: &FloorOptions,
+    counts: &mut WindowCounts,
+) -> Vec<Window> {
+    let mut out = Vec::new();
+    let mut start = 0;
+    while start < times.len() {
+        let end = times.partition_point(|&t| t < times[start] + o.window_s);
+        let frames: Vec<usize> = (start..end.max(start + 1)).collect();
+        start = end.max(start + 1);
+        counts.windows += 1;
+        let reference = frames[frames.len() / 2];
+        let centre = |i: usize| lens.pose(times[i], 0.5);
+        let Some(ref_pose) = centre(reference) else {
+            counts.unposed += 1;
+            continue;
+        };
+        if downward_share(lens.camera, &ref_pose, o.sweep.max_nadir_rad) < MIN_DOWNWARD_SHARE {
+            counts.not_looking_down += 1;
+            continue;
+        }
+        let moved: Vec<(usize, f64)> = frames
+            .iter()
+            .filter(|&&i| i != reference)
+            .filter_map(|&i| {
+                let p = centre(i)?;
+                let b = (p.translation.vector - ref_pose.translation.vector)
+                    .xy()
+                    .norm();
+                (b >= MIN_BASELINE_M).then_some((i, b))
+            })
+            .collect();
+        if moved.len() < 2 {
+            counts.no_baseline += 1;
+            continue;
+        }
+        let sweep_views: Vec<usize> = if moved.len() <= SWEEP_VIEWS {
+            moved.iter().map(|m| m.0).collect()
+        } else {
+            (0..SWEEP_VIEWS)
+                .map(|k| moved[k * (moved.len() - 1) / (SWEEP_VIEWS - 1)].0)
+                .collect()
+        };
+        let Some(&(stereo_view, _)) = moved.iter().min_by(|a, b| {
+            (a.1 - STEREO_BASELINE_M)
+                .abs()
+                .total_cmp(&(b.1 - STEREO_BASELINE_M).abs())
+        }) else {
+            continue;
+        };
+        let baseline_m = moved.iter().map(|m| m.1).fold(0.0, f64::max);
+        out.push(Window {
+            reference,
+            sweep_views,
+            stereo_view,
+            baseline_m,
+        });
+    }
+    if out.len() > o.max_windows {
+        let n = out.len();
+        let keep: Vec<usize> = (0..o.max_windows)
+            .map(|k| (2 * k + 1) * n / (2 * o.max_windows))
+            .collect();
+        out = out
+            .into_iter()
+            .enumerate()
+            .filter(|(i, _)| keep.contains(i))
+            .map(|(_, w)| w)
+            .collect();
+    }
+    counts.swept = out.len();
+    out
+}
+
+/// The lowest surface of a channel inside the camera-to-floor band.
+fn floor_of(surfaces: &[Surface], band: [f64; 2]) -> Option<Surface> {
+    surfaces
+        .iter()
+        .find(|s| s.depth_m >= band[0] && s.depth_m <= band[1])
+        .copied()
+}
+
+/// Combine the channels' floors: agreeing ones by inverse variance, a single one as it is.
+fn combine(
+    a: Option<Surface>,
+    b: Option<Surface>,
+) -> std::result::Result<(f64, f64), WindowStatus> {
+    let sigma = |s: &Surface| s.sigma_m.max(MIN_SIGMA_M);
+    match (a, b) {
+        (None, None) => Err(WindowStatus::NoSurface),
+        (Some(s), None) | (None, Some(s)) => Ok((s.z_m, sigma(&s))),
+        (Some(s), Some(t)) => {
+            let (vs, vt) = (sigma(&s).powi(2), sigma(&t).powi(2));
+            if (s.z_m - t.z_m).abs() > CHANNELS_AGREE_M.max(3.0 * (vs + vt).sqrt()) {
+                return Err(WindowStatus::Conflict);
+            }
+            let (ws, wt) = (1.0 / vs, 1.0 / vt);
+            Ok((
+                (ws * s.z_m + wt * t.z_m) / (ws + wt),
+                (1.0 / (ws + wt)).sqrt(),
+            ))
+        }
+    }
+}
+
+/// Sweep and match a wrist's windows; `tick(done, total)` reports progress.
+pub fn wrist_windows(
+    source: &FrameSource,
+    lens: &FrontLens<'_>,
+    o: &FloorOptions,
+    tick: &dyn Fn(usize, usize),
+) -> Result<(Vec<WindowEstimate>, WindowCounts)> {
+    let times: Vec<f64> = source.frames().iter().map(|f| f.t).collect();
+    let mut counts = WindowCounts::default();
+    let windows = choose_windows(lens, &times, o, &mut counts);
+    let mut out = Vec::with_capacity(windows.len());
+    for (k, w) in windows.iter().enumerate() {
+        tick(k, windows.len());
+        let mut indices: Vec<usize> = w.sweep_views.clone();
+        indices.push(w.reference);
+        indices.push(w.stereo_view);
+        indices.sort_unstable();
+        indices.dedup();
+        let mut images = std::collections::BTreeMap::new();
+        for &i in &indices {
+            images.insert(i, source.load_gray(i)?);
+        }
+        let view = |i: usize| -> Option<PosedView<'_>> {
+            let t = times[i];
+            // Every row must be posed.
+            lens.pose(t, 0.0)?;
+            lens.pose(t, 1.0)?;
+            let image = images.get(&i)?;
+            Some(PosedView::new(image, lens.camera, |row| {
+                lens.pose(t, row).unwrap_or_else(Pose::identity)
+            }))
+        };
+        let (Some(reference), Some(pair)) = (view(w.reference), view(w.stereo_view)) else {
+            continue;
+        };
+        let others: Vec<PosedView<'_>> = w.sweep_views.iter().filter_map(|&i| view(i)).collect();
+        let swept = sweep(&reference, &others, &o.sweep);
+        let matched = stereo(&reference, &pair, &o.stereo)?;
+        let stereo_surfaces = matched.map(|m| m.surfaces).unwrap_or_default();
+        let band = o.camera_height_m;
+        let combined = combine(
+            floor_of(&swept.surfaces, band),
+            floor_of(&stereo_surfaces, band),
+        );
+        let (floor_z_m, sigma_m, status) = match combined {
+            Ok((z, s)) => (Some(z), Some(s), WindowStatus::Accepted),
+            Err(status) => (None, None, status),
+        };
+        out.push(WindowEstimate {
+            side: lens.side,
+            frame: w.reference,
+            t_camera: times[w.reference],
+            t_session: crate::outputs::session_time(lens.clock, times[w.reference]),
+            camera_z_m: reference.middle().translation.vector.z,
+            baseline_m: w.baseline_m,
+            sweep_support: swept.votes.support_curve(),
+            sweep: swept.surfaces,
+            stereo: stereo_surfaces,
+            floor_z_m,
+            sigma_m,
+            status,
+        });
+    }
+    tick(windows.len(), windows.len());
+    reject_strays(&mut out);
+    Ok((out, counts))
+}
+
+/// Temporal outlier rejection: a window whose floor is more than [`OUTLIER_M`] from the median
+/// of its accepted neighbours' (up to [`NEIGHBOURS`] on each side) is rejected.
+fn reject_strays(windows: &mut [WindowEstimate]) {
+    let accepted: Vec<(usize, f64)> = windows
+        .iter()
+        .enumerate()
+        .filter_map(|(i, w)| w.floor_z_m.map(|z| (i, z)))
+        .collect();
+    let mut strays = Vec::new();
+    for (k, &(i, z)) in accepted.iter().enumerate() {
+        let lo = k.saturating_sub(NEIGHBOURS);
+        let hi = (k + NEIGHBOURS + 1).min(accepted.len());
+        let mut near: Vec<f64> = accepted[lo..hi]
+            .iter()
+            .filter(|(j, _)| *j != i)
+            .map(|(_, z)| *z)
+            .collect();
+        if near.len() < 2 {
+            continue;
+        }
+        let (median, _) = view::median_mad(&mut near);
+        if (z - median).abs() > OUTLIER_M {
+            strays.push(i);
+        }
+    }
+    for i in strays {
+        let w = &mut windows[i];
+        w.status = WindowStatus::Outlier;
+    }
+}
+
+/// A horizontal surface of the episode above the floor (a table).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct EpisodeSurface {
+    /// Scene height (m).
+    pub z_m: f64,
+    /// Height above the floor (m), when there is one.
+    pub above_floor_m: Option<f64>,
+    /// Accepted windows that saw it.
+    pub windows: usize,
+}
+
+/// The episode's floor: found, or not with the reason.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "status", rename_all = "snake_case")]
+pub enum Floor {
+    /// A floor height.
+    Found {
+        /// Scene height of the floor (m).
+        z_m: f64,
+        /// Spread of the windows' heights about it (m, 1.4826 × weighted MAD).
+        spread_m: f64,
+        /// Accepted windows pooled.
+        windows: usize,
+    },
+    /// No floor: why.
+    NoFloor {
+        /// What was missing.
+        reason: String,
+    },
+}
+
+impl Floor {
+    /// The floor's scene height, when found.
+    pub fn z_m(&self) -> Option<f64> {
+        match self {
+            Self::Found { z_m, .. } => Some(*z_m),
+            Self::NoFloor { .. } => None,
+        }
+    }
+}
+
+/// Weighted median of `(value, weight)` pairs (none when empty).
+fn weighted_median(mut pairs: Vec<(f64, f64)>) -> Option<f64> {
+    pairs.retain(|(v, w)| v.is_finite() && *w > 0.0);
+    if pairs.is_empty() {
+        return None;
+    }
+    pairs.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let total: f64 = pairs.iter().map(|p| p.1).sum();
+    let mut acc = 0.0;
+    for (v, w) in &pairs {
+        acc += w;
+        if acc >= 0.5 * total {
+            return Some(*v);
+        }
+    }
+    pairs.last().map(|p| p.0)
+}
+
+/// Pool the accepted windows of both wrists: the floor by a weighted median (weights
+/// 1/sigma²), or no floor with the reason drawn from the wrists' counts.
+pub fn pool(windows: &[WindowEstimate], counts: &[WindowCounts], band: [f64; 2]) -> Floor {
+    let accepted: Vec<(f64, f64)> = windows
+        .iter()
+        .filter(|w| w.status == WindowStatus::Accepted)
+        .filter_map(|w| Some((w.floor_z_m?, 1.0 / w.sigma_m?.max(MIN_SIGMA_M).powi(2))))
+        .collect();
+    let Some(z_m) = weighted_median(accepted.clone()) else {
+        let total: WindowCounts =
+            counts
+                .iter()
+                .fold(WindowCounts::default(), |a, c| WindowCounts {
+                    windows: a.windows + c.windows,
+                    unposed: a.unposed + c.unposed,
+                    not_looking_down: a.not_looking_down + c.not_looking_down,
+                    no_baseline: a.no_baseline + c.no_baseline,
+                    swept: a.swept + c.swept,
+                });
+        let conflicts = windows
+            .iter()
+            .filter(|w| w.status == WindowStatus::Conflict)
+            .count();
+        let reason = if total.windows == 0 {
+            "the front lenses recorded no frames".to_string()
+        } else if total.unposed == total.windows {
+            "no front frame has a fused pose".to_string()
+        } else if total.swept == 0 && total.not_looking_down >= total.no_baseline {
+            format!(
+                "the front lenses never looked down: in none of {} one-second windows did {:.0} % \
+                 of a frame's view lie within {:.0}° of straight down",
+                total.windows,
+                100.0 * MIN_DOWNWARD_SHARE,
+                SweepOptions::default().max_nadir_rad.to_degrees()
+            )
+        } else if total.swept == 0 {
+            format!(
+                "the cameras never moved sideways by {MIN_BASELINE_M} m within a window while \
+                 looking down"
+            )
+        } else if conflicts > 0 && conflicts == total.swept {
+            "the plane sweep and the motion stereo disagreed in every window".to_string()
+        } else {
+            format!(
+                "no horizontal surface {:.2}-{:.2} m below the cameras was supported in any of \
+                 {} windows that looked down (a floor without texture, or out of view)",
+                band[0], band[1], total.swept
+            )
+        };
+        return Floor::NoFloor { reason };
+    };
+    let deviations: Vec<(f64, f64)> = accepted
+        .iter()
+        .map(|(v, w)| ((v - z_m).abs(), *w))
+        .collect();
+    let spread_m = 1.4826 * weighted_median(deviations).unwrap_or(0.0);
+    Floor::Found {
+        z_m,
+        spread_m,
+        windows: accepted.len(),
+    }
+}
+
+/// The supported surfaces above the floor (or all, without one) seen by enough accepted
+/// windows: the sweep's and stereo's surfaces of each window clustered across windows.
+pub fn surfaces_above(windows: &[WindowEstimate], floor: &Floor) -> Vec<EpisodeSurface> {
+    let floor_z = floor.z_m();
+    let accepted: Vec<&WindowEstimate> = windows
+        .iter()
+        .filter(|w| w.status == WindowStatus::Accepted)
+        .collect();
+    // One height per window and surface (the channels' agreeing surfaces count once).
+    let mut heights: Vec<f64> = Vec::new();
+    for w in &accepted {
+        let mut mine: Vec<f64> = Vec::new();
+        for s in w.sweep.iter().chain(&w.stereo) {
+            if floor_z.is_some_and(|f| s.z_m - f < MIN_ABOVE_FLOOR_M) {
+                continue;
+            }
+            if mine.iter().all(|m| (m - s.z_m).abs() > SURFACE_CLUSTER_M) {
+                mine.push(s.z_m);
+            }
+        }
+        heights.extend(mine);
+    }
+    heights.sort_by(f64::total_cmp);
+    let min_windows = ((accepted.len() as f64 * MIN_SURFACE_WINDOWS_SHARE).ceil() as usize).max(2);
+    let mut out = Vec::new();
+    let mut i = 0;
+    while i < heights.len() {
+        let mut j = i + 1;
+        while j < heights.len() && heights[j] - heights[j - 1] <= SURFACE_CLUSTER_M {
+            j += 1;
+        }
+        if j - i >= min_windows {
+            let mut cluster = heights[i..j].to_vec();
+            let (z, _) = view::median_mad(&mut cluster);
+            out.push(EpisodeSurface {
+                z_m: z,
+                above_floor_m: floor_z.map(|f| z - f),
+                windows: j - i,
+            });
+        }
+        i = j;
+    }
+    out
+}
