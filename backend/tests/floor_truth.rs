@@ -6,19 +6,16 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
-use std::path::Path;
+mod common;
 
-use nalgebra::{Quaternion, Translation3, UnitQuaternion};
-
+use common::truth::{truth_nodes, truth_rows};
 use kiwi_backend::floor::{
     EpisodeSurface, Floor, FloorOptions, FrontLens, WindowEstimate, pool, surfaces_above,
     wrist_windows,
 };
 use kiwi_backend::formats::calibration::exposure_centre_delay;
 use kiwi_backend::frames::FrameSource;
-use kiwi_backend::fusion::FusedNode;
 use kiwi_core::artifact::UnitCalibration;
-use kiwi_core::geometry::Pose;
 use kiwi_core::layout::{EpisodeLayout, Session, Side};
 use kiwi_fixtures::scenario::Scenario;
 use kiwi_fixtures::scene::{PLATFORM_MAX, TABLE_TOP_Z};
@@ -26,34 +23,6 @@ use kiwi_fixtures::session::{SessionOptions, write_session};
 
 /// The bound on the floor and table heights.
 const MAX_HEIGHT_ERROR_M: f64 = 0.01;
-
-/// `scene_from_imu` truth rows of a wrist on its IMU clock.
-fn imu_nodes(path: &Path) -> Vec<FusedNode> {
-    let text = std::fs::read_to_string(path).unwrap();
-    let mut lines = text.lines();
-    let header: Vec<&str> = lines.next().unwrap().split(',').collect();
-    let col = |name: &str| header.iter().position(|h| *h == name).unwrap();
-    let (t, px) = (col("t"), col("px"));
-    lines
-        .map(|l| {
-            let v: Vec<f64> = l.split(',').map(|x| x.parse().unwrap()).collect();
-            let q = UnitQuaternion::from_quaternion(Quaternion::new(
-                v[px + 6],
-                v[px + 3],
-                v[px + 4],
-                v[px + 5],
-            ));
-            FusedNode {
-                t: v[t],
-                scene_from_imu: Pose::from_parts(Translation3::new(v[px], v[px + 1], v[px + 2]), q),
-                velocity: nalgebra::Vector3::zeros(),
-                bias: Default::default(),
-                pose_cov: nalgebra::Matrix6::zeros(),
-                support: Default::default(),
-            }
-        })
-        .collect()
-}
 
 /// Record one episode of `scenario` (front lenses only) and run the floor on its truth poses.
 fn floor_of(
@@ -89,7 +58,9 @@ fn floor_of(
         let front = cal.lens("front").unwrap();
         let meta = episode.read_meta(camera).unwrap();
         let readout = 2.0 * exposure_centre_delay(&cal, &meta.mode, meta.fps).unwrap();
-        let nodes = imu_nodes(&episode.truth_dir().join(camera).join("imu_states.csv"));
+        let nodes = truth_nodes(&truth_rows(
+            &episode.truth_dir().join(camera).join("imu_states.csv"),
+        ));
         let model = front.camera().unwrap();
         let lens = FrontLens {
             side,

@@ -8,13 +8,13 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
+mod common;
+
 use std::path::Path;
 
-use nalgebra::{Quaternion, Translation3, UnitQuaternion};
-
+use common::truth::{TruthRow, truth_nodes, truth_rows};
 use kiwi_backend::formats::calibration::exposure_centre_delay;
 use kiwi_backend::frames::FrameSource;
-use kiwi_backend::fusion::FusedNode;
 use kiwi_backend::head::episode::{HeadTrack, WristPlacement, find_sightings, observations};
 use kiwi_backend::head::marker::MarkerFinder;
 use kiwi_backend::head::track::{TrackOptions, fuse};
@@ -29,38 +29,6 @@ use kiwi_fixtures::session::{HAT_MARKER_ID, HAT_MARKER_SIZE_M, SessionOptions, w
 /// The bounds where the marker is observed.
 const MAX_POSITION_ERROR_M: f64 = 0.01;
 const MAX_ROTATION_ERROR_RAD: f64 = 0.017_453_292_5;
-
-/// A truth row: the clock's own time (`t`, when the file has it), session time, pose.
-struct TruthRow {
-    t: f64,
-    t_session: f64,
-    pose: Pose,
-}
-
-/// Rows of a truth CSV whose columns include `t_session,px,py,pz,qx,qy,qz,qw` (and `t`).
-fn truth_rows(path: &Path) -> Vec<TruthRow> {
-    let text = std::fs::read_to_string(path).unwrap();
-    let mut lines = text.lines();
-    let header: Vec<&str> = lines.next().unwrap().split(',').collect();
-    let col = |name: &str| header.iter().position(|h| *h == name);
-    let (ts, px, t) = (col("t_session").unwrap(), col("px").unwrap(), col("t"));
-    lines
-        .map(|l| {
-            let v: Vec<f64> = l.split(',').map(|x| x.parse().unwrap()).collect();
-            let q = UnitQuaternion::from_quaternion(Quaternion::new(
-                v[px + 6],
-                v[px + 3],
-                v[px + 4],
-                v[px + 5],
-            ));
-            TruthRow {
-                t: t.map_or(f64::NAN, |i| v[i]),
-                t_session: v[ts],
-                pose: Pose::from_parts(Translation3::new(v[px], v[px + 1], v[px + 2]), q),
-            }
-        })
-        .collect()
-}
 
 fn truth_poses(path: &Path) -> Vec<(f64, Pose)> {
     truth_rows(path)
@@ -141,17 +109,7 @@ fn the_head_track_and_camera_from_both_rear_lenses_match_the_truth() {
         ambiguous += counts.ambiguous;
         // The wrist's true IMU trajectory as its fused nodes, on its IMU clock.
         let imu = truth_rows(&truth_dir.join(camera).join("imu_states.csv"));
-        let nodes: Vec<FusedNode> = imu
-            .iter()
-            .map(|r| FusedNode {
-                t: r.t,
-                scene_from_imu: r.pose,
-                velocity: nalgebra::Vector3::zeros(),
-                bias: Default::default(),
-                pose_cov: nalgebra::Matrix6::zeros(),
-                support: Default::default(),
-            })
-            .collect();
+        let nodes = truth_nodes(&imu);
         let front_shift = cal.lens("front").unwrap().time_shift_s.unwrap();
         let clock = clock_from(camera, &imu, front_shift);
         let placement = WristPlacement {

@@ -332,15 +332,12 @@ pub fn wrist_windows(
         }
         let view = |i: usize| -> Option<PosedView<'_>> {
             let t = times[i];
-            // Every row must be posed.
-            lens.pose(t, 0.0)?;
-            lens.pose(t, 1.0)?;
-            let image = images.get(&i)?;
-            Some(PosedView::new(image, lens.camera, |row| {
-                lens.pose(t, row).unwrap_or_else(Pose::identity)
-            }))
+            PosedView::new(images.get(&i)?, lens.camera, |row| lens.pose(t, row))
         };
         let (Some(reference), Some(pair)) = (view(w.reference), view(w.stereo_view)) else {
+            // A gap in the trajectory during one of the two frames' readout.
+            counts.unposed += 1;
+            counts.swept -= 1;
             continue;
         };
         let others: Vec<PosedView<'_>> = w.sweep_views.iter().filter_map(|&i| view(i)).collect();

@@ -7,7 +7,7 @@ use nalgebra::{Point2, Point3, Vector3};
 
 use kiwi_core::camera::CameraModel;
 
-use super::view::{HeightVotes, PosedView, Surface, zncc};
+use super::view::{HeightVotes, PosedView, Surface, is_flat, zncc};
 
 /// What the sweep looks at and how finely.
 #[derive(Debug, Clone, Copy, serde::Serialize, serde::Deserialize)]
@@ -76,7 +76,8 @@ pub fn pixel_angle(camera: &dyn CameraModel) -> Option<f64> {
 
 /// Sweep `reference` against `others`.
 pub fn sweep(reference: &PosedView<'_>, others: &[PosedView<'_>], o: &SweepOptions) -> SweepResult {
-    let camera_z = reference.middle().translation.vector.z;
+    let c_ref = reference.middle().translation.vector;
+    let camera_z = c_ref.z;
     let mut votes = HeightVotes::new(o.h_min_m, o.h_max_m, o.bin_m);
     let Some(pixel_rad) = pixel_angle(reference.camera) else {
         return SweepResult {
@@ -84,7 +85,6 @@ pub fn sweep(reference: &PosedView<'_>, others: &[PosedView<'_>], o: &SweepOptio
             surfaces: Vec::new(),
         };
     };
-    let c_ref = reference.middle().translation.vector;
     let baseline = others
         .iter()
         .map(|v| (v.middle().translation.vector - c_ref).xy().norm())
@@ -161,7 +161,9 @@ fn pixel_height(
             patch[k] = reference.sample(u.x + f64::from(i) * step, u.y + f64::from(j) * step)?;
         }
     }
-    zncc(&patch, &patch, MIN_PATCH_STD)?;
+    if is_flat(&patch, MIN_PATCH_STD) {
+        return None;
+    }
     let on_plane = |origin: &Point3<f64>, dir: &Vector3<f64>, z: f64| -> Option<Point3<f64>> {
         let t = (z - origin.z) / dir.z;
         (t > 0.0).then(|| origin + dir * t)

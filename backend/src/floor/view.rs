@@ -21,24 +21,25 @@ pub struct PosedView<'a> {
 }
 
 impl<'a> PosedView<'a> {
-    /// A view whose rows' poses are `pose_of_row(row fraction in [0, 1])`.
+    /// A view whose rows' poses are `pose_of_row(row fraction in [0, 1])`, or `None` when a
+    /// row has no pose (a gap in the trajectory during the frame's readout).
     pub fn new(
         image: &'a GrayImage,
         camera: &'a Camera,
-        pose_of_row: impl Fn(f64) -> Pose,
-    ) -> Self {
+        pose_of_row: impl Fn(f64) -> Option<Pose>,
+    ) -> Option<Self> {
         let h = image.height.max(1) as usize;
         let denominator = (h.max(2) - 1) as f64;
         let rows: Vec<Pose> = (0..h)
             .map(|r| pose_of_row(r as f64 / denominator))
-            .collect();
+            .collect::<Option<_>>()?;
         let cam_from_scene = rows.iter().map(Pose::inverse).collect();
-        Self {
+        Some(Self {
             image,
             camera,
             rows,
             cam_from_scene,
-        }
+        })
     }
 
     /// Index of the row nearest to `v` (px), clamped to the image.
@@ -108,6 +109,14 @@ pub fn sample(image: &GrayImage, x: f64, y: f64) -> Option<f32> {
     let top = at(x0, y0) + (at(x0 + 1, y0) - at(x0, y0)) * ax;
     let bottom = at(x0, y0 + 1) + (at(x0 + 1, y0 + 1) - at(x0, y0 + 1)) * ax;
     Some(top + (bottom - top) * ay)
+}
+
+/// Whether a sample is flat: its standard deviation below `min_std`.
+pub fn is_flat(values: &[f32], min_std: f32) -> bool {
+    let n = values.len() as f32;
+    let mean = values.iter().sum::<f32>() / n.max(1.0);
+    let var = values.iter().map(|v| (v - mean) * (v - mean)).sum::<f32>() / n.max(1.0);
+    var.is_nan() || var < min_std * min_std
 }
 
 /// Zero-mean normalized cross-correlation of two equally long samples, or `None` when either

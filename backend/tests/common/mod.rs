@@ -2,6 +2,7 @@
 #![allow(dead_code, clippy::unwrap_used)]
 
 pub mod reloc;
+pub mod truth;
 
 use std::path::{Path, PathBuf};
 

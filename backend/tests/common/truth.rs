@@ -1,0 +1,56 @@
+//! The simulator's truth pose files (`t_session,px,...,qw` with the clock's own `t`) and a
+//! wrist's true IMU trajectory as fused nodes, for the tests developed on truth poses.
+
+use std::path::Path;
+
+use nalgebra::{Quaternion, Translation3, UnitQuaternion};
+
+use kiwi_backend::fusion::FusedNode;
+use kiwi_core::geometry::Pose;
+
+/// A truth row: the clock's own time (`t`, when the file has it), session time, pose.
+pub struct TruthRow {
+    pub t: f64,
+    pub t_session: f64,
+    pub pose: Pose,
+}
+
+/// Rows of a truth CSV whose columns include `t_session,px,py,pz,qx,qy,qz,qw` (and `t`).
+pub fn truth_rows(path: &Path) -> Vec<TruthRow> {
+    let text = std::fs::read_to_string(path).unwrap();
+    let mut lines = text.lines();
+    let header: Vec<&str> = lines.next().unwrap().split(',').collect();
+    let col = |name: &str| header.iter().position(|h| *h == name);
+    let (ts, px, t) = (col("t_session").unwrap(), col("px").unwrap(), col("t"));
+    lines
+        .map(|l| {
+            let v: Vec<f64> = l.split(',').map(|x| x.parse().unwrap()).collect();
+            let q = UnitQuaternion::from_quaternion(Quaternion::new(
+                v[px + 6],
+                v[px + 3],
+                v[px + 4],
+                v[px + 5],
+            ));
+            TruthRow {
+                t: t.map_or(f64::NAN, |i| v[i]),
+                t_session: v[ts],
+                pose: Pose::from_parts(Translation3::new(v[px], v[px + 1], v[px + 2]), q),
+            }
+        })
+        .collect()
+}
+
+/// Truth rows (on their own clock `t`) as fused nodes: the truth trajectory where a stage
+/// reads the fusion's.
+pub fn truth_nodes(rows: &[TruthRow]) -> Vec<FusedNode> {
+    rows.iter()
+        .map(|r| FusedNode {
+            t: r.t,
+            scene_from_imu: r.pose,
+            velocity: nalgebra::Vector3::zeros(),
+            bias: Default::default(),
+            pose_cov: nalgebra::Matrix6::zeros(),
+            support: Default::default(),
+        })
+        .collect()
+}
