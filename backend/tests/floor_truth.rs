@@ -18,7 +18,7 @@ use kiwi_backend::frames::FrameSource;
 use kiwi_core::artifact::UnitCalibration;
 use kiwi_core::layout::{EpisodeLayout, Session, Side};
 use kiwi_fixtures::scenario::Scenario;
-use kiwi_fixtures::scene::{PLATFORM_MAX, TABLE_TOP_Z};
+use kiwi_fixtures::scene::{PLATFORM_MAX, RoomKind, SceneOptions, TABLE_TOP_Z};
 use kiwi_fixtures::session::{SessionOptions, write_session};
 
 /// The bound on the floor and table heights.
@@ -29,6 +29,7 @@ fn floor_of(
     scenario: Scenario,
     seed: u64,
     platform: bool,
+    room: RoomKind,
 ) -> (Floor, Vec<EpisodeSurface>, Vec<WindowEstimate>) {
     let tmp = tempfile::tempdir().unwrap();
     let mut o = SessionOptions::new(tmp.path());
@@ -40,6 +41,7 @@ fn floor_of(
     o.scenario = scenario;
     o.head = false;
     o.rolling_shutter = true;
+    o.scene = SceneOptions::room(room);
     o.scene.platform = platform;
     o.only_lenses = vec!["left/front".into(), "right/front".into()];
     let written = write_session(&o).unwrap();
@@ -76,7 +78,7 @@ fn floor_of(
         windows.extend(w);
         counts.push(c);
     }
-    let floor = pool(&windows, &counts, options.camera_height_m);
+    let floor = pool(&mut windows, &counts, options.camera_height_m);
     let surfaces = surfaces_above(&windows, &floor);
     for w in &windows {
         eprintln!(
@@ -114,7 +116,7 @@ fn assert_floor(floor: &Floor) {
 
 #[test]
 fn tabletop_floor_and_table_heights_match_the_room() {
-    let (floor, surfaces, _) = floor_of(Scenario::Tabletop, 41, false);
+    let (floor, surfaces, _) = floor_of(Scenario::Tabletop, 41, false, RoomKind::Studio);
     assert_floor(&floor);
     let table = surfaces
         .iter()
@@ -133,13 +135,13 @@ fn tabletop_floor_and_table_heights_match_the_room() {
 
 #[test]
 fn walk_floor_height_matches_the_room() {
-    let (floor, _, _) = floor_of(Scenario::Walk, 43, false);
+    let (floor, _, _) = floor_of(Scenario::Walk, 43, false, RoomKind::Studio);
     assert_floor(&floor);
 }
 
 #[test]
 fn a_low_platform_beside_the_path_does_not_take_the_floors_place() {
-    let (floor, surfaces, windows) = floor_of(Scenario::Walk, 47, true);
+    let (floor, surfaces, windows) = floor_of(Scenario::Walk, 47, true, RoomKind::Studio);
     assert_floor(&floor);
     let platform_seen = windows
         .iter()
@@ -153,9 +155,22 @@ fn a_low_platform_beside_the_path_does_not_take_the_floors_place() {
 
 #[test]
 fn front_views_that_never_see_the_floor_report_no_floor_with_the_reason() {
-    let (floor, _, _) = floor_of(Scenario::Overhead, 53, false);
+    let (floor, _, _) = floor_of(Scenario::Overhead, 53, false, RoomKind::Studio);
     let Floor::NoFloor { reason } = floor else {
         panic!("expected no floor, got {floor:?}");
     };
     assert!(reason.contains("never looked down"), "{reason}");
+}
+
+#[test]
+fn a_wrist_that_mostly_sees_the_table_still_finds_the_floor() {
+    // In this room the hands hover over a cluttered table and the floor is in view in only a
+    // few windows: the table and the objects on it must not take the floor's place.
+    let (floor, _, windows) = floor_of(Scenario::Tabletop, 73, false, RoomKind::Workshop);
+    assert_floor(&floor);
+    let above = windows
+        .iter()
+        .filter(|w| w.status == kiwi_backend::floor::WindowStatus::AboveFloor)
+        .count();
+    assert!(above > 0, "some windows saw only the table");
 }

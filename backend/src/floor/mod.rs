@@ -55,8 +55,10 @@ impl Default for FloorOptions {
     }
 }
 
-/// Default camera-to-floor band (m): a wrist from a crouch at the floor to arms raised.
-pub const DEFAULT_CAMERA_HEIGHT_M: [f64; 2] = [0.2, 2.2];
+/// Default camera-to-floor band (m): a standing operator's wrist from a low reach to arms
+/// raised. The lower bound keeps out a worktop the wrist works over (0.15-0.45 m below it);
+/// a session that works near the floor configures its own band.
+pub const DEFAULT_CAMERA_HEIGHT_M: [f64; 2] = [0.5, 2.2];
 /// A window needs this share of its reference frame's directions looking within the sweep's
 /// nadir angle (a frame looking level or up sees the floor only at grazing angles).
 const MIN_DOWNWARD_SHARE: f64 = 0.1;
@@ -82,6 +84,15 @@ const SURFACE_CLUSTER_M: f64 = 0.03;
 const MIN_SURFACE_WINDOWS_SHARE: f64 = 0.2;
 /// Surfaces closer than this above the floor are the floor itself (m).
 const MIN_ABOVE_FLOOR_M: f64 = 0.05;
+/// The floor is the lowest height that at least this share of the windows with a candidate
+/// found: a wrist over a table may see the floor in only a few windows, while a single
+/// window's low surface is not evidence enough.
+const MIN_FLOOR_WINDOWS_SHARE: f64 = 0.2;
+/// Heights of different windows within this of a level's centre belong to it (m): the
+/// windows' own spread, and less than the smallest object on a table is tall.
+const LEVEL_HALF_WIDTH_M: f64 = 0.02;
+/// The floor needs at least this many windows too (unless only one window had a candidate).
+const MIN_FLOOR_WINDOWS: usize = 2;
 
 /// A wrist's front lens on its fused trajectory.
 #[derive(Debug, Clone, Copy)]
@@ -120,8 +131,10 @@ pub enum WindowStatus {
     NoSurface,
     /// The two channels found different floors.
     Conflict,
-    /// Its floor strayed from its neighbours'.
+    /// Its floor strayed from its neighbours', or lay below the episode's floor.
     Outlier,
+    /// It saw only surfaces above the episode's floor (a table filled its view).
+    AboveFloor,
 }
 
 /// One window's result.
@@ -373,8 +386,9 @@ pub fn wrist_windows(
     Ok((out, counts))
 }
 
-/// Temporal outlier rejection: a window whose floor is more than [`OUTLIER_M`] from the median
-/// of its accepted neighbours' (up to [`NEIGHBOURS`] on each side) is rejected.
+/// Temporal outlier rejection: a window whose floor is more than [`OUTLIER_M`] from most of its
+/// accepted neighbours' (up to [`NEIGHBOURS`] on each side, at least two) is rejected. Agreeing
+/// with half of them is enough: two neighbours that disagree with each other say nothing.
 fn reject_strays(windows: &mut [WindowEstimate]) {
     let accepted: Vec<(usize, f64)> = windows
         .iter()
@@ -385,7 +399,7 @@ fn reject_strays(windows: &mut [WindowEstimate]) {
     for (k, &(i, z)) in accepted.iter().enumerate() {
         let lo = k.saturating_sub(NEIGHBOURS);
         let hi = (k + NEIGHBOURS + 1).min(accepted.len());
-        let mut near: Vec<f64> = accepted[lo..hi]
+        let near: Vec<f64> = accepted[lo..hi]
             .iter()
             .filter(|(j, _)| *j != i)
             .map(|(_, z)| *z)
@@ -393,14 +407,133 @@ fn reject_strays(windows: &mut [WindowEstimate]) {
         if near.len() < 2 {
             continue;
         }
-        let (median, _) = view::median_mad(&mut near);
-        if (z - median).abs() > OUTLIER_M {
+        let agreeing = near.iter().filter(|n| (z - *n).abs() <= OUTLIER_M).count();
+        if 2 * agreeing < near.len() {
             strays.push(i);
         }
     }
     for i in strays {
         let w = &mut windows[i];
         w.status = WindowStatus::Outlier;
+    }
+}
+
+/// Each channel's floor candidate of a window (the lowest surface in the band), when the window
+/// is neither without a surface nor a temporal stray.
+fn candidates(w: &WindowEstimate, band: [f64; 2]) -> [Option<Surface>; 2] {
+    if matches!(w.status, WindowStatus::NoSurface | WindowStatus::Outlier) {
+        return [None, None];
+    }
+    [floor_of(&w.sweep, band), floor_of(&w.stereo, band)]
+}
+
+/// Heights found by windows: one per window and level, with the window's index.
+type WindowHeights = Vec<(f64, usize)>;
+
+/// The heights within [`LEVEL_HALF_WIDTH_M`] of `z`, and how many distinct windows found them.
+fn level_members(heights: &WindowHeights, z: f64) -> (Vec<f64>, usize) {
+    let near: Vec<&(f64, usize)> = heights
+        .iter()
+        .filter(|h| (h.0 - z).abs() <= LEVEL_HALF_WIDTH_M)
+        .collect();
+    let mut seen: Vec<usize> = near.iter().map(|h| h.1).collect();
+    seen.sort_unstable();
+    seen.dedup();
+    (near.iter().map(|h| h.0).collect(), seen.len())
+}
+
+/// The centre of the level around `z`: the median of its members, taken twice so a seed at the
+/// level's edge moves to its middle.
+fn level_centre(heights: &WindowHeights, z: f64) -> f64 {
+    let mut centre = z;
+    for _ in 0..2 {
+        let (mut members, _) = level_members(heights, centre);
+        if members.is_empty() {
+            break;
+        }
+        centre = view::median_mad(&mut members).0;
+    }
+    centre
+}
+
+/// One height per window and level from `surfaces` of each window (levels closer than
+/// [`SURFACE_CLUSTER_M`] within a window count once, the first given wins), and how many
+/// windows gave any.
+fn window_heights<'a, I>(per_window: impl Iterator<Item = (usize, I)>) -> (WindowHeights, usize)
+where
+    I: Iterator<Item = &'a Surface>,
+{
+    let mut heights = Vec::new();
+    let mut windows = 0;
+    for (i, surfaces) in per_window {
+        let mut mine: Vec<f64> = Vec::new();
+        for s in surfaces {
+            if mine.iter().all(|m| (m - s.z_m).abs() > SURFACE_CLUSTER_M) {
+                mine.push(s.z_m);
+            }
+        }
+        windows += usize::from(!mine.is_empty());
+        heights.extend(mine.into_iter().map(|z| (z, i)));
+    }
+    heights.sort_by(|a, b| a.0.total_cmp(&b.0));
+    (heights, windows)
+}
+
+/// The episode's floor level by consensus: the windows' candidates (both channels', one height
+/// per window and level); the lowest height that enough windows found within
+/// [`LEVEL_HALF_WIDTH_M`] ([`MIN_FLOOR_WINDOWS_SHARE`], [`MIN_FLOOR_WINDOWS`]) is the floor.
+/// Its centre, or `None` when no level is found by enough windows.
+fn floor_level(windows: &[WindowEstimate], band: [f64; 2]) -> Option<f64> {
+    let per_window: Vec<(usize, [Option<Surface>; 2])> = windows
+        .iter()
+        .enumerate()
+        .map(|(i, w)| (i, candidates(w, band)))
+        .collect();
+    let (heights, with_candidate) =
+        window_heights(per_window.iter().map(|(i, c)| (*i, c.iter().flatten())));
+    let needed = if with_candidate == 1 {
+        1
+    } else {
+        ((with_candidate as f64 * MIN_FLOOR_WINDOWS_SHARE).ceil() as usize).max(MIN_FLOOR_WINDOWS)
+    };
+    heights
+        .iter()
+        .find(|h| level_members(&heights, h.0).1 >= needed)
+        .map(|h| level_centre(&heights, h.0))
+}
+
+/// Re-judge every window against the episode's floor level: the channels whose candidate lies
+/// within [`OUTLIER_M`] of it are combined (a channel that saw only the table no longer
+/// conflicts with one that saw the floor); a window without one there saw only surfaces above
+/// the floor (some too near the camera to be a candidate at all), or a spurious one below it.
+/// Temporal strays stay rejected.
+fn judge(windows: &mut [WindowEstimate], level: f64, band: [f64; 2]) {
+    for w in windows.iter_mut() {
+        if w.status == WindowStatus::Outlier {
+            continue;
+        }
+        let [a, b] = candidates(w, band);
+        let near = |s: Option<Surface>| s.filter(|s| (s.z_m - level).abs() <= OUTLIER_M);
+        if let Ok((z, sigma)) = combine(near(a), near(b)) {
+            w.floor_z_m = Some(z);
+            w.sigma_m = Some(sigma);
+            w.status = WindowStatus::Accepted;
+            continue;
+        }
+        let mut seen = w.sweep.iter().chain(&w.stereo).peekable();
+        if seen.peek().is_none() {
+            continue;
+        }
+        let above = seen.all(|s| s.z_m - level >= MIN_ABOVE_FLOOR_M);
+        w.floor_z_m = None;
+        w.sigma_m = None;
+        w.status = if above {
+            WindowStatus::AboveFloor
+        } else if a.is_some() || b.is_some() {
+            WindowStatus::Outlier
+        } else {
+            w.status
+        };
     }
 }
 
@@ -463,9 +596,14 @@ fn weighted_median(mut pairs: Vec<(f64, f64)>) -> Option<f64> {
     pairs.last().map(|p| p.0)
 }
 
-/// Pool the accepted windows of both wrists: the floor by a weighted median (weights
-/// 1/sigma²), or no floor with the reason drawn from the wrists' counts.
-pub fn pool(windows: &[WindowEstimate], counts: &[WindowCounts], band: [f64; 2]) -> Floor {
+/// Pool the windows of both wrists: the floor level by consensus ([`floor_level`]), every
+/// window re-judged against it, and the floor by a weighted median (weights 1/sigma²) of the
+/// accepted ones; or no floor with the reason drawn from the wrists' counts.
+pub fn pool(windows: &mut [WindowEstimate], counts: &[WindowCounts], band: [f64; 2]) -> Floor {
+    let level = floor_level(windows, band);
+    if let Some(level) = level {
+        judge(windows, level, band);
+    }
     let accepted: Vec<(f64, f64)> = windows
         .iter()
         .filter(|w| w.status == WindowStatus::Accepted)
@@ -505,6 +643,12 @@ pub fn pool(windows: &[WindowEstimate], counts: &[WindowCounts], band: [f64; 2])
             )
         } else if conflicts > 0 && conflicts == total.swept {
             "the plane sweep and the motion stereo disagreed in every window".to_string()
+        } else if level.is_none() && windows.iter().any(|w| candidates(w, band) != [None, None]) {
+            format!(
+                "no floor height was found by {MIN_FLOOR_WINDOWS} windows or {:.0} % of those \
+                 with a candidate: the windows' lowest surfaces disagreed",
+                100.0 * MIN_FLOOR_WINDOWS_SHARE
+            )
         } else {
             format!(
                 "no horizontal surface {:.2}-{:.2} m below the cameras was supported in any of \
@@ -526,47 +670,45 @@ pub fn pool(windows: &[WindowEstimate], counts: &[WindowCounts], band: [f64; 2])
     }
 }
 
-/// The supported surfaces above the floor (or all, without one) seen by enough accepted
-/// windows: the sweep's and stereo's surfaces of each window clustered across windows.
+/// The supported surfaces above the floor (or all, without one) seen by enough of the windows
+/// that saw the floor or only surfaces above it: repeatedly the height found by the most windows
+/// within [`LEVEL_HALF_WIDTH_M`] (the sweep's height first where both channels saw a level: it
+/// poses every row), while at least [`MIN_SURFACE_WINDOWS_SHARE`] of those windows found it.
 pub fn surfaces_above(windows: &[WindowEstimate], floor: &Floor) -> Vec<EpisodeSurface> {
     let floor_z = floor.z_m();
-    let accepted: Vec<&WindowEstimate> = windows
+    let seeing: Vec<&WindowEstimate> = windows
         .iter()
-        .filter(|w| w.status == WindowStatus::Accepted)
+        .filter(|w| matches!(w.status, WindowStatus::Accepted | WindowStatus::AboveFloor))
         .collect();
-    // One height per window and surface (the channels' agreeing surfaces count once).
-    let mut heights: Vec<f64> = Vec::new();
-    for w in &accepted {
-        let mut mine: Vec<f64> = Vec::new();
-        for s in w.sweep.iter().chain(&w.stereo) {
-            if floor_z.is_some_and(|f| s.z_m - f < MIN_ABOVE_FLOOR_M) {
-                continue;
-            }
-            if mine.iter().all(|m| (m - s.z_m).abs() > SURFACE_CLUSTER_M) {
-                mine.push(s.z_m);
-            }
-        }
-        heights.extend(mine);
-    }
-    heights.sort_by(f64::total_cmp);
-    let min_windows = ((accepted.len() as f64 * MIN_SURFACE_WINDOWS_SHARE).ceil() as usize).max(2);
+    let above = |s: &&Surface| floor_z.is_none_or(|f| s.z_m - f >= MIN_ABOVE_FLOOR_M);
+    let (mut heights, _) = window_heights(
+        seeing
+            .iter()
+            .enumerate()
+            .map(|(i, w)| (i, w.sweep.iter().chain(&w.stereo).filter(above))),
+    );
+    let min_windows = ((seeing.len() as f64 * MIN_SURFACE_WINDOWS_SHARE).ceil() as usize).max(2);
     let mut out = Vec::new();
-    let mut i = 0;
-    while i < heights.len() {
-        let mut j = i + 1;
-        while j < heights.len() && heights[j] - heights[j - 1] <= SURFACE_CLUSTER_M {
-            j += 1;
+    loop {
+        let best = heights
+            .iter()
+            .map(|h| (h.0, level_members(&heights, h.0).1))
+            .max_by(|a, b| a.1.cmp(&b.1).then(b.0.total_cmp(&a.0)));
+        let Some((seed, count)) = best else { break };
+        if count < min_windows {
+            break;
         }
-        if j - i >= min_windows {
-            let mut cluster = heights[i..j].to_vec();
-            let (z, _) = view::median_mad(&mut cluster);
-            out.push(EpisodeSurface {
-                z_m: z,
-                above_floor_m: floor_z.map(|f| z - f),
-                windows: j - i,
-            });
-        }
-        i = j;
+        let z = level_centre(&heights, seed);
+        let (_, windows) = level_members(&heights, z);
+        out.push(EpisodeSurface {
+            z_m: z,
+            above_floor_m: floor_z.map(|f| z - f),
+            windows: windows.max(count),
+        });
+        heights.retain(|h| {
+            (h.0 - z).abs() > LEVEL_HALF_WIDTH_M && (h.0 - seed).abs() > LEVEL_HALF_WIDTH_M
+        });
     }
+    out.sort_by(|a, b| a.z_m.total_cmp(&b.z_m));
     out
 }
