@@ -90,6 +90,8 @@ bench: deps
 	cargo bench -p kiwi-backend --bench vision
 	cargo bench -p kiwi-backend --bench frames
 	cargo bench -p kiwi-backend --bench export
+	cargo bench -p kiwi-backend --bench head
+	cargo bench -p kiwi-backend --bench floor
 
 hardware: deps
 	cargo run --release -p kiwi-calib -- hardware generate

@@ -46,12 +46,15 @@ use crate::sync::{CameraStatus, SyncResult};
 /// closer than this are the same frame.
 const OPENING_TIME_MATCH_S: f64 = 2e-6;
 
+/// A floor whose windows spread more than this is suspect (m): the heights' accuracy goal.
+const SUSPECT_FLOOR_SPREAD_M: f64 = 0.01;
+
 /// Schema of `quality.json`.
 pub const QUALITY_SCHEMA_VERSION: u32 = 1;
 /// Header of `<wrist>.csv`.
 pub const TRAJECTORY_HEADER: &str = "t_session,t_camera,tip_px,tip_py,tip_pz,tip_qx,tip_qy,tip_qz,tip_qw,\
 cam_px,cam_py,cam_pz,cam_qx,cam_qy,cam_qz,cam_qw,tip_sigma_p_m,tip_sigma_r_rad,cam_sigma_p_m,\
-cam_sigma_r_rad,support,factors,opening,opening_unit,opening_confidence";
+cam_sigma_r_rad,support,factors,opening,opening_unit,opening_confidence,tip_height_m,cam_height_m";
 
 /// What supported a frame.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -175,6 +178,17 @@ pub struct EpisodeInputs {
     pub metric: BTreeMap<String, MetricFile>,
     /// The head stage's files and record, when the session has a head camera.
     pub head: Option<HeadOutputs>,
+    /// The floor stage's files and record.
+    pub floor: Option<FloorOutputs>,
+}
+
+/// What the floor stage hands the outputs: its files (published as they are) and its record.
+#[derive(Debug, Clone)]
+pub struct FloorOutputs {
+    /// `(file name, bytes)`: `floor.json`, `floor_windows.csv`, `floor.svg`.
+    pub files: Vec<(String, Vec<u8>)>,
+    /// The record, `quality.json`'s `floor` section.
+    pub summary: crate::floor::FloorSummary,
 }
 
 /// What the head stage hands the outputs: its files (published as they are) and its record.
@@ -251,6 +265,9 @@ pub struct QualityRecord {
     /// The head's track and the head camera's poses (absent without a head camera).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub head: Option<crate::head::episode::HeadSummary>,
+    /// The floor and the other horizontal surfaces (absent when the floor stage did not run).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub floor: Option<crate::floor::FloorSummary>,
 }
 
 /// A camera-clock time on the session timeline (`None` when the camera is not on it).
@@ -297,6 +314,7 @@ fn median(mut v: Vec<f64>) -> f64 {
 fn write_wrist(
     w: &WristInputs,
     clock: Option<&crate::sync::CameraClock>,
+    floor_z: Option<f64>,
     dir: &Path,
 ) -> Result<WristQuality> {
     let n = w.fused.len();
@@ -350,9 +368,21 @@ fn write_wrist(
             Some((unit, o)) => {
                 let value = o.value.map(|v| format!("{v:.6}")).unwrap_or_default();
                 measured += usize::from(o.value.is_some());
-                let _ = writeln!(csv, ",{value},{unit},{:.3}", o.confidence);
+                let _ = write!(csv, ",{value},{unit},{:.3}", o.confidence);
             }
-            None => csv.push_str(",,,\n"),
+            None => csv.push_str(",,,"),
+        }
+        // Heights above the floor (eq. 6), empty without one.
+        match floor_z {
+            Some(f) => {
+                let _ = writeln!(
+                    csv,
+                    ",{:.6},{:.6}",
+                    tip_pose.translation.vector.z - f,
+                    cam_pose.translation.vector.z - f
+                );
+            }
+            None => csv.push_str(",,\n"),
         }
         tum_line(&mut tip_tum, t_out, &tip_pose);
         tum_line(&mut cam_tum, t_out, &cam_pose);
@@ -485,6 +515,27 @@ fn grade_wrist(v: &mut VerdictBuilder, name: &str, q: &WristQuality) {
     }
 }
 
+/// Grade the floor: a floor whose windows spread more than the heights' accuracy goal makes
+/// the heights above it suspect. No floor is not a fault of the trajectories: the heights stay
+/// empty and `quality.json`'s `floor` section says why.
+fn grade_floor(v: &mut VerdictBuilder, f: &crate::floor::FloorSummary) {
+    if let crate::floor::Floor::Found {
+        spread_m, windows, ..
+    } = f.floor
+        && spread_m > SUSPECT_FLOOR_SPREAD_M
+    {
+        v.add(
+            Verdict::Suspect,
+            format!(
+                "floor: its {windows} windows spread {:.1} cm about it (> {:.0} cm): the heights \
+                 above the floor are uncertain by as much; see floor_windows.csv",
+                spread_m * 1e2,
+                SUSPECT_FLOOR_SPREAD_M * 1e2
+            ),
+        );
+    }
+}
+
 /// Write every deliverable of an episode into `dir` and return the quality record (also
 /// written there as `quality.json`).
 pub fn write_outputs(inputs: &EpisodeInputs, dir: &Path) -> Result<QualityRecord> {
@@ -496,7 +547,8 @@ pub fn write_outputs(inputs: &EpisodeInputs, dir: &Path) -> Result<QualityRecord
     let mut v = VerdictBuilder::default();
     for w in &inputs.wrists {
         let clock = inputs.sync.cameras.iter().find(|c| c.name == w.camera);
-        let q = write_wrist(w, clock, dir)?;
+        let floor_z = inputs.floor.as_ref().and_then(|f| f.summary.floor.z_m());
+        let q = write_wrist(w, clock, floor_z, dir)?;
         grade_wrist(&mut v, &w.camera, &q);
         wrists.insert(w.camera.clone(), q);
     }
@@ -535,6 +587,12 @@ pub fn write_outputs(inputs: &EpisodeInputs, dir: &Path) -> Result<QualityRecord
             );
         }
     }
+    if let Some(floor) = &inputs.floor {
+        for (name, bytes) in &floor.files {
+            write_atomic(&dir.join(name), bytes)?;
+        }
+        grade_floor(&mut v, &floor.summary);
+    }
     let (verdict, reasons) = v.finish();
     let record = QualityRecord {
         schema_version: QUALITY_SCHEMA_VERSION,
@@ -547,6 +605,7 @@ pub fn write_outputs(inputs: &EpisodeInputs, dir: &Path) -> Result<QualityRecord
         metric: inputs.metric.clone(),
         map_episode: inputs.map_episode.clone(),
         head: inputs.head.as_ref().map(|h| h.summary.clone()),
+        floor: inputs.floor.as_ref().map(|f| f.summary.clone()),
     };
     crate::formats::results::write_json(&dir.join("quality.json"), &record)?;
     Ok(record)
@@ -575,5 +634,6 @@ pub fn failed_record(episode: &str, map_episode: &str, reasons: Vec<String>) -> 
         metric: BTreeMap::new(),
         map_episode: map_episode.to_string(),
         head: None,
+        floor: None,
     }
 }

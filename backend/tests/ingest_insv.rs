@@ -210,6 +210,7 @@ fn session(dir: &Path, head: bool) -> PathBuf {
             description: String::new(),
         }],
         export: None,
+        floor: None,
     };
     std::fs::create_dir_all(dir.join("episodes")).unwrap();
     let toml = dir.join("session.toml");

@@ -52,6 +52,68 @@ fn results(session: &Path) -> Vec<(String, Vec<u8>)> {
     all
 }
 
+/// The bound on the cameras' heights above the floor on fused poses (m): the floor's own
+/// accuracy goal (1 cm) plus the fused trajectory's height error at this session's 320 px.
+const MAX_HEIGHT_ERROR_M: f64 = 0.02;
+
+/// An episode's published floor: `floor.json`, its windows and figure, the `floor` section of
+/// `quality.json`; when a floor was found, every front camera's `cam_height_m` against the
+/// simulator's camera height (its world's floor is at z = 0 and the scene frame is level).
+fn floor_heights_match_the_truth(root: &Path, ep: &str, quality: &serde_json::Value) {
+    let episode = root.join("episodes").join(ep);
+    let out = episode.join("out");
+    for file in ["floor.json", "floor_windows.csv", "floor.svg"] {
+        assert!(out.join(file).is_file(), "{ep}: no {file}");
+    }
+    let floor = &quality["floor"];
+    println!("{ep} floor: {floor}");
+    let status = floor["floor"]["status"].as_str().unwrap();
+    if status != "found" {
+        assert!(
+            !floor["floor"]["reason"].as_str().unwrap().is_empty(),
+            "{floor}"
+        );
+        return;
+    }
+    for wrist in ["left", "right"] {
+        let mut reader = csv::Reader::from_path(out.join(format!("{wrist}.csv"))).unwrap();
+        let header = reader.headers().unwrap().clone();
+        let col = |name: &str| header.iter().position(|h| h == name).unwrap();
+        let (tc, height) = (col("t_camera"), col("cam_height_m"));
+        let truth: Vec<(f64, f64)> =
+            std::fs::read_to_string(episode.join("truth").join(wrist).join("front_poses.csv"))
+                .unwrap()
+                .lines()
+                .skip(1)
+                .map(|l| {
+                    let v: Vec<f64> = l.split(',').map(|x| x.parse().unwrap()).collect();
+                    // `t` (the camera's clock, as the outputs' `t_camera`) and `pz`.
+                    (v[0], v[4])
+                })
+                .collect();
+        let mut errors: Vec<f64> = reader
+            .records()
+            .map(|r| r.unwrap())
+            .filter_map(|r| {
+                let t: f64 = r.get(tc)?.parse().ok()?;
+                let h: f64 = r.get(height)?.parse().ok()?;
+                let k = truth.partition_point(|x| x.0 < t);
+                let (a, b) = (truth.get(k.checked_sub(1)?)?, truth.get(k)?);
+                let z = a.1 + (b.1 - a.1) * (t - a.0) / (b.0 - a.0);
+                Some((h - z).abs())
+            })
+            .collect();
+        assert!(!errors.is_empty(), "{ep} {wrist}: no heights");
+        errors.sort_by(f64::total_cmp);
+        let median = errors[errors.len() / 2];
+        println!("{ep} {wrist}: camera height above the floor, median error {median:.4} m");
+        assert!(
+            median < MAX_HEIGHT_ERROR_M,
+            "{ep} {wrist}: median height error {median:.4} m"
+        );
+    }
+}
+
 #[test]
 fn a_killed_run_resumes_to_byte_identical_results() {
     let tmp = tempfile::tempdir().unwrap();
@@ -116,6 +178,15 @@ fn a_killed_run_resumes_to_byte_identical_results() {
         }
         assert!(head["samples"].as_u64().unwrap() > 0, "{head}");
         println!("{ep} head: {head}");
+        floor_heights_match_the_truth(a.parent().unwrap(), ep, &q);
+    }
+    // The floor stage ran per episode and the outputs publish its files.
+    for ep in ["ep000", "ep001"] {
+        let s = stages
+            .iter()
+            .find(|s| s["stage"] == format!("{ep}/floor"))
+            .unwrap_or_else(|| panic!("no floor stage for {ep}: {stages:?}"));
+        assert_eq!(s["outcome"], "ran", "{s}");
     }
     for name in [
         "session/export-lerobot",

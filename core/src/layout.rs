@@ -141,6 +141,21 @@ pub struct Session {
     /// Datasets `kiwi run` exports after the episodes' outputs (none when absent).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub export: Option<ExportConfig>,
+    /// How the floor reference is sought (defaults when absent).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub floor: Option<FloorConfig>,
+}
+
+/// `[floor]` of `session.toml`: the floor reference's settings.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FloorConfig {
+    /// Heights of the wrists' front cameras above the floor the floor may be at, `[low, high]`
+    /// (m) [default: 0.5 to 2.2, a standing operator]. The lowest supported horizontal surface
+    /// this far below a camera is the floor: lower `low` for work near the floor, raise it when
+    /// a worktop sits lower than 0.5 m under the wrists.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub camera_height_m: Option<[f64; 2]>,
 }
 
 /// The dataset formats an `[export]` table may name.
@@ -309,6 +324,16 @@ impl Session {
                 "a side length in metres, in (0, 1)",
                 h.marker_size_m.to_string(),
                 "marker sizes are in metres (58 mm = 0.058)",
+            ));
+        }
+        if let Some([low, high]) = self.floor.as_ref().and_then(|f| f.camera_height_m)
+            && !(low.is_finite() && high.is_finite() && low > 0.0 && low < high && high < 10.0)
+        {
+            return Err(CoreError::invalid_value(
+                "floor.camera_height_m",
+                "[low, high] in metres with 0 < low < high < 10",
+                format!("[{low}, {high}]"),
+                "give the wrists' camera-to-floor heights in metres, e.g. [0.5, 2.2]",
             ));
         }
         if let Some(x) = &self.export {

@@ -712,3 +712,93 @@ pub fn surfaces_above(windows: &[WindowEstimate], floor: &Floor) -> Vec<EpisodeS
     out.sort_by(|a, b| a.z_m.total_cmp(&b.z_m));
     out
 }
+
+/// The floor stage's record (`floor.json`, and `quality.json`'s `floor` section).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FloorSummary {
+    /// The episode's floor, or why there is none.
+    pub floor: Floor,
+    /// Horizontal surfaces above it (a table), lowest first.
+    pub surfaces: Vec<EpisodeSurface>,
+    /// The camera-to-floor band searched (m).
+    pub camera_height_m: [f64; 2],
+    /// Per wrist camera: the windows and why some were not swept.
+    pub wrists: std::collections::BTreeMap<String, WindowCounts>,
+    /// Swept windows per outcome (`accepted`, `no_surface`, `conflict`, `outlier`,
+    /// `above_floor`).
+    pub outcomes: std::collections::BTreeMap<String, usize>,
+}
+
+impl FloorSummary {
+    /// The record of `windows` pooled into `floor` with `surfaces`.
+    pub fn new(
+        floor: Floor,
+        surfaces: Vec<EpisodeSurface>,
+        camera_height_m: [f64; 2],
+        wrists: std::collections::BTreeMap<String, WindowCounts>,
+        windows: &[WindowEstimate],
+    ) -> Self {
+        let mut outcomes = std::collections::BTreeMap::new();
+        for w in windows {
+            *outcomes.entry(w.status.name().to_string()).or_insert(0) += 1;
+        }
+        Self {
+            floor,
+            surfaces,
+            camera_height_m,
+            wrists,
+            outcomes,
+        }
+    }
+}
+
+impl WindowStatus {
+    /// The outcome's name in files.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Accepted => "accepted",
+            Self::NoSurface => "no_surface",
+            Self::Conflict => "conflict",
+            Self::Outlier => "outlier",
+            Self::AboveFloor => "above_floor",
+        }
+    }
+}
+
+/// Header of `floor_windows.csv`.
+pub const WINDOWS_HEADER: &str = "wrist,frame,t_camera,t_session,camera_z_m,baseline_m,\
+sweep_floor_z_m,stereo_floor_z_m,floor_z_m,sigma_m,status,sweep_surfaces_z_m,stereo_surfaces_z_m";
+
+/// `floor_windows.csv`: one row per swept window, its channels' floor candidates in `band`,
+/// its floor and outcome, and every surface each channel found (`;`-separated scene heights).
+pub fn windows_csv(windows: &[WindowEstimate], band: [f64; 2]) -> String {
+    use std::fmt::Write as _;
+    let opt = |v: Option<f64>| v.map(|v| format!("{v:.5}")).unwrap_or_default();
+    let list = |s: &[Surface]| {
+        s.iter()
+            .map(|s| format!("{:.4}", s.z_m))
+            .collect::<Vec<_>>()
+            .join(";")
+    };
+    let mut out = format!("{WINDOWS_HEADER}\n");
+    for w in windows {
+        let _ = writeln!(
+            out,
+            "{},{},{:.6},{},{:.4},{:.4},{},{},{},{},{},{},{}",
+            w.side.camera_name(),
+            w.frame,
+            w.t_camera,
+            w.t_session.map(|t| format!("{t:.6}")).unwrap_or_default(),
+            w.camera_z_m,
+            w.baseline_m,
+            opt(floor_of(&w.sweep, band).map(|s| s.z_m)),
+            opt(floor_of(&w.stereo, band).map(|s| s.z_m)),
+            opt(w.floor_z_m),
+            opt(w.sigma_m),
+            w.status.name(),
+            list(&w.sweep),
+            list(&w.stereo),
+        );
+    }
+    out
+}

@@ -20,8 +20,9 @@
 //! `report/index.html`), last, after every episode's `outputs` and every export. It reads
 //! what the stages before it left, failed ones included.
 //!
-//! The floor reference attaches after `fusion-<wrist>` and before `outputs` in [`build`] (with
-//! its own family name), in the same way as `head`.
+//! `floor` (the floor reference from both wrists' front streams, §4.3.3) runs after both
+//! wrists' fusion and before `outputs`, which adds each camera's and tool tip's height above the
+//! floor and publishes it.
 
 use kiwi_core::layout::Side;
 
@@ -140,6 +141,11 @@ pub enum StageKind {
         /// Episode.
         episode: String,
     },
+    /// The floor and other horizontal surfaces from both wrists' front streams (§4.3.3).
+    Floor {
+        /// Episode.
+        episode: String,
+    },
     /// The episode's deliverables: tool-tip trajectories, TUM files, `quality.json`.
     Outputs {
         /// Episode.
@@ -195,6 +201,7 @@ pub fn id_of(kind: &StageKind) -> StageId {
             StageId::episode(episode, format!("gripper-{}", side.camera_name()))
         }
         StageKind::Head { episode } => StageId::episode(episode, "head"),
+        StageKind::Floor { episode } => StageId::episode(episode, "floor"),
         StageKind::Outputs { episode } => StageId::episode(episode, "outputs"),
         StageKind::Export { format } => StageId::session(format!("export-{}", format.name())),
         StageKind::Report => StageId::session("report"),
@@ -202,7 +209,7 @@ pub fn id_of(kind: &StageKind) -> StageId {
 }
 
 /// Stage families a user can name in `--from`, `--force` and `kiwi status`.
-pub const FAMILIES: [&str; 13] = [
+pub const FAMILIES: [&str; 14] = [
     "sync",
     "map",
     "tool",
@@ -213,6 +220,7 @@ pub const FAMILIES: [&str; 13] = [
     "fusion",
     "gripper",
     "head",
+    "floor",
     "outputs",
     "export",
     "report",
@@ -381,6 +389,20 @@ pub fn build(ctx: &SessionContext, episodes: &[String]) -> Vec<StageNode> {
             deps.push(id_of(&head));
             push(head, head_deps);
         }
+        let floor = StageKind::Floor {
+            episode: episode.clone(),
+        };
+        let mut floor_deps = vec![id_of(&StageKind::Sync {
+            episode: episode.clone(),
+        })];
+        floor_deps.extend(sides.iter().map(|&side| {
+            id_of(&StageKind::Fusion {
+                episode: episode.clone(),
+                side,
+            })
+        }));
+        deps.push(id_of(&floor));
+        push(floor, floor_deps);
         push(
             StageKind::Outputs {
                 episode: episode.clone(),

@@ -71,7 +71,8 @@ pub fn version(kind: &StageKind) -> &'static str {
         StageKind::Fusion { .. } => "fusion-3",
         StageKind::Gripper { .. } => "gripper-1",
         StageKind::Head { .. } => "head-2",
-        StageKind::Outputs { .. } => "outputs-2",
+        StageKind::Floor { .. } => "floor-1",
+        StageKind::Outputs { .. } => "outputs-3",
         StageKind::Export { .. } => "export-1",
         StageKind::Report => "report-1",
     }
@@ -113,6 +114,16 @@ pub fn parameters(kind: &StageKind) -> serde_json::Value {
                 "min_marker_size_px": crate::head::marker::MIN_MARKER_SIZE_PX,
                 "previous_sighting_max_age_s": crate::head::episode::PREVIOUS_SIGHTING_MAX_AGE_S,
                 "max_node_gap_s": crate::head::episode::MAX_NODE_GAP_S,
+            })
+        }
+        // The band is an input (from session.toml); the rest are the algorithm's settings.
+        StageKind::Floor { .. } => {
+            let o = crate::floor::FloorOptions::default();
+            serde_json::json!({
+                "window_s": o.window_s,
+                "max_windows": o.max_windows,
+                "sweep": o.sweep,
+                "stereo": o.stereo,
             })
         }
         _ => serde_json::Value::Null,
@@ -374,6 +385,25 @@ pub fn inputs(ctx: &SessionContext, kind: &StageKind) -> Result<Vec<InputDigest>
             }
             v
         }
+        StageKind::Floor { episode } => {
+            let layout = ctx.episode(episode);
+            let mut v = Vec::new();
+            for w in ctx.wrists.values() {
+                v.push(calibration_input(ctx, w)?);
+                v.push(stream_input(ctx, &layout, w.camera, "front")?);
+                v.push(file_input(
+                    ctx,
+                    format!("meta {}", w.camera),
+                    &layout.meta_json(w.camera),
+                )?);
+            }
+            v.push(InputDigest {
+                name: "floor band".into(),
+                path: ctx.relative(&ctx.toml),
+                digest: sha256_bytes(format!("{:?}", floor_band(ctx)).as_bytes()),
+            });
+            v
+        }
         StageKind::Outputs { .. } => {
             let mut v = Vec::new();
             for w in ctx.wrists.values() {
@@ -536,6 +566,7 @@ pub fn run(env: &StageEnv<'_>, kind: &StageKind) -> Result<()> {
         StageKind::Fusion { episode, side } => run_fusion(env, episode, *side),
         StageKind::Gripper { episode, side } => run_gripper(env, episode, *side),
         StageKind::Head { episode } => run_head(env, episode),
+        StageKind::Floor { episode } => run_floor(env, episode),
         StageKind::Outputs { episode } => run_outputs(env, episode),
         StageKind::Export { format } => run_export(env, *format),
         StageKind::Report => {
@@ -1104,6 +1135,87 @@ fn run_head(env: &StageEnv<'_>, episode: &str) -> Result<()> {
     write_json(&env.out.join(HEAD_SUMMARY_FILE), &summary)
 }
 
+/// The floor stage's record (also `quality.json`'s `floor` section).
+pub const FLOOR_SUMMARY_FILE: &str = "floor.json";
+/// The floor stage's files published by `outputs` beside its record: every window's result and
+/// the plane-support figure.
+pub const FLOOR_FILES: [&str; 2] = ["floor_windows.csv", "floor.svg"];
+
+/// The camera-to-floor band of the session: `[floor] camera_height_m`, else the default.
+pub fn floor_band(ctx: &SessionContext) -> [f64; 2] {
+    ctx.session
+        .floor
+        .as_ref()
+        .and_then(|f| f.camera_height_m)
+        .unwrap_or(crate::floor::DEFAULT_CAMERA_HEIGHT_M)
+}
+
+fn run_floor(env: &StageEnv<'_>, episode: &str) -> Result<()> {
+    use crate::floor::{FloorOptions, FloorSummary, FrontLens, pool, surfaces_above};
+    let ctx = env.ctx;
+    let sync = sync_of(env, episode)?;
+    let clock_of = |name: &str| sync.cameras.iter().find(|c| c.name == name);
+    let layout = ctx.episode(episode);
+    let options = FloorOptions {
+        camera_height_m: floor_band(ctx),
+        ..FloorOptions::default()
+    };
+    let wrists = ctx.wrists.len();
+    let mut windows = Vec::new();
+    let mut counts = std::collections::BTreeMap::new();
+    for (k, (&side, w)) in ctx.wrists.iter().enumerate() {
+        let nodes: Vec<crate::fusion::FusedNode> = fused_of(env, episode, side)?
+            .into_iter()
+            .map(|r| r.node)
+            .collect();
+        let camera = w
+            .calibration
+            .lens("front")
+            .ok_or_else(|| {
+                input(
+                    &w.calibration_path,
+                    "field `lenses`: no lens named `front`".into(),
+                )
+            })?
+            .camera()?;
+        let lens = FrontLens {
+            side,
+            nodes: &nodes,
+            cam_from_imu: w.front.cam_from_imu,
+            time_shift_s: w.front.time_shift_s,
+            readout_s: 2.0 * exposure_centre_delay(ctx, episode, w)?,
+            camera: &camera,
+            clock: clock_of(w.camera),
+        };
+        let source = crate::frames::FrameSource::open(&layout.lens_dir(w.camera, "front"))?;
+        // Progress in hundredths of a wrist.
+        let tick = |done: usize, total: usize| {
+            (env.progress)(k * 100 + done * 100 / total.max(1), wrists * 100);
+        };
+        let (mine, c) = crate::floor::wrist_windows(&source, &lens, &options, &tick)?;
+        windows.extend(mine);
+        counts.insert(w.camera.to_string(), c);
+    }
+    let all_counts: Vec<_> = counts.values().copied().collect();
+    let floor = pool(&mut windows, &all_counts, options.camera_height_m);
+    let surfaces = surfaces_above(&windows, &floor);
+    let [windows_name, figure_name] = FLOOR_FILES;
+    write_atomic(
+        &env.out.join(windows_name),
+        crate::floor::windows_csv(&windows, options.camera_height_m).as_bytes(),
+    )?;
+    let charts = crate::floor::figure::charts(&windows, &floor, &surfaces);
+    let svg = kiwi_plot::Chart::stack_to_svg(&charts).map_err(|e| {
+        input(
+            &env.out.join(figure_name),
+            format!("cannot draw the floor figure: {e}"),
+        )
+    })?;
+    write_atomic(&env.out.join(figure_name), svg.as_bytes())?;
+    let summary = FloorSummary::new(floor, surfaces, options.camera_height_m, counts, &windows);
+    write_json(&env.out.join(FLOOR_SUMMARY_FILE), &summary)
+}
+
 /// A session map and its landmarks in the scene frame: the map's metric recovery, and for a
 /// front map its placement into the scene (eq. 2). `root` is the session folder.
 pub fn map_in_scene(root: &Path, map: MapName) -> Result<(VisualMap, Vec<nalgebra::Vector3<f64>>)> {
@@ -1359,6 +1471,24 @@ fn run_outputs(env: &StageEnv<'_>, episode: &str) -> Result<()> {
             })
         }
     };
+    let floor_dir = env.dep_dir(&StageKind::Floor {
+        episode: episode.to_string(),
+    });
+    let mut floor_files = Vec::new();
+    for name in std::iter::once(FLOOR_SUMMARY_FILE).chain(FLOOR_FILES) {
+        let path = floor_dir.join(name);
+        let bytes = std::fs::read(&path).map_err(|e| {
+            input(
+                &path,
+                format!("cannot read the floor stage's file: {e}; re-run"),
+            )
+        })?;
+        floor_files.push((name.to_string(), bytes));
+    }
+    let floor = Some(crate::outputs::FloorOutputs {
+        files: floor_files,
+        summary: read_json_file(&floor_dir.join(FLOOR_SUMMARY_FILE), "floor stage record")?,
+    });
     let inputs = crate::outputs::EpisodeInputs {
         episode: episode.to_string(),
         map_episode: ctx.session.map_episode.clone(),
@@ -1366,6 +1496,7 @@ fn run_outputs(env: &StageEnv<'_>, episode: &str) -> Result<()> {
         sync,
         metric,
         head,
+        floor,
     };
     crate::outputs::write_outputs(&inputs, &env.out.join(PUBLISHED_DIR))?;
     Ok(())

@@ -38,6 +38,8 @@ pub const PAGE_FILE: &str = "index.html";
 /// The head camera's path in an episode's `out/` (TUM: `t x y z qx qy qz qw`), drawn when the
 /// session has a head camera.
 pub const HEAD_PATH_FILE: &str = "head.tum";
+/// The floor stage's figure in an episode's `out/`.
+pub const FLOOR_FIGURE_FILE: &str = "floor.svg";
 
 /// One wrist of the session.
 #[derive(Debug, Clone, PartialEq)]
@@ -119,6 +121,8 @@ pub struct EpisodeReport {
     pub wrists: Vec<WristTrack>,
     /// The head camera's path (session time, position), when the session has a head camera.
     pub head: Option<Vec<(f64, [f64; 3])>>,
+    /// The floor stage's figure (SVG text of `out/floor.svg`), when published.
+    pub floor_figure: Option<String>,
     /// Every wrist lens's localizations.
     pub lenses: Vec<LensTrack>,
     /// The sync result, when the sync stage ran.
@@ -350,6 +354,19 @@ fn episode_report(ctx: &SessionContext, name: &str, description: &str) -> Episod
     } else {
         None
     };
+    let floor_path = out.join(FLOOR_FIGURE_FILE);
+    let floor_figure = if floor_path.is_file() {
+        kiwi_core::io::read_text(&floor_path)
+            .map_err(|e| notes.push(e.to_string()))
+            .ok()
+            // The page inlines the drawing: an XML declaration may not stand inside HTML.
+            .map(|svg| match svg.find("<svg") {
+                Some(at) => svg[at..].to_string(),
+                None => svg,
+            })
+    } else {
+        None
+    };
     let (verdict, reasons) = match &quality {
         Some(q) => (Some(q.verdict), q.reasons.clone()),
         None => (
@@ -365,6 +382,7 @@ fn episode_report(ctx: &SessionContext, name: &str, description: &str) -> Episod
         quality,
         wrists,
         head,
+        floor_figure,
         lenses,
         sync,
         stages: Vec::new(),

@@ -276,6 +276,7 @@ fn episode_section(w: &mut Writer, report: &SessionReport, ep: &EpisodeReport) -
     for chart in gripper_charts(ep) {
         w.figure("gripper", &chart.to_svg()?, "");
     }
+    floor_section(w, ep);
     match &ep.sync {
         Some(sync) => {
             w.figure(
@@ -298,6 +299,47 @@ fn episode_section(w: &mut Writer, report: &SessionReport, ep: &EpisodeReport) -
     );
     stage_table(&mut w.html, &ep.stages);
     Ok(())
+}
+
+/// The floor and the surfaces above it, with the floor stage's figure.
+fn floor_section(w: &mut Writer, ep: &EpisodeReport) {
+    let Some(f) = ep.quality.as_ref().and_then(|q| q.floor.as_ref()) else {
+        return;
+    };
+    match &f.floor {
+        crate::floor::Floor::Found {
+            z_m,
+            spread_m,
+            windows,
+        } => {
+            let _ = write!(
+                w.html,
+                "<p>Floor at z = {z_m:.3} m in the scene frame (spread {:.1} mm over {windows}                  windows)",
+                spread_m * 1e3
+            );
+            for s in &f.surfaces {
+                if let Some(h) = s.above_floor_m {
+                    let _ = write!(
+                        w.html,
+                        "; a horizontal surface {h:.3} m above it ({} windows)",
+                        s.windows
+                    );
+                }
+            }
+            w.html.push_str(".</p>\n");
+        }
+        crate::floor::Floor::NoFloor { reason } => {
+            let _ = writeln!(w.html, "<p class=\"note\">No floor: {}.</p>", esc(reason));
+        }
+    }
+    if let Some(svg) = &ep.floor_figure {
+        w.figure(
+            "floor",
+            svg,
+            "Floor: the plane sweep's support per camera-to-plane distance in the most decisive \
+             window (floor and other surfaces marked), and every window's floor height over time.",
+        );
+    }
 }
 
 fn quality_section(html: &mut String, ep: &EpisodeReport) {
@@ -863,6 +905,7 @@ mod tests {
                     .map(|k| (k as f64, [0.0, 0.1 * k as f64, 1.6]))
                     .collect(),
             ),
+            floor_figure: None,
             lenses: vec![
                 lens("left", "front"),
                 lens("left", "rear"),
@@ -927,6 +970,7 @@ mod tests {
             quality: None,
             wrists: Vec::new(),
             head: None,
+            floor_figure: None,
             lenses: Vec::new(),
             sync: None,
             stages: Vec::new(),

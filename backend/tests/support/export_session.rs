@@ -17,6 +17,9 @@ use serde_json::Value;
 use nalgebra::{Translation3, Vector3};
 
 use kiwi_backend::outputs::{TRAJECTORY_HEADER, failed_record};
+
+/// The floor lies this far below the scene origin in the written outputs (m).
+const FLOOR_DEPTH_M: f64 = 1.0;
 use kiwi_backend::quality::Verdict;
 use kiwi_backend::sync::{CameraClock, CameraStatus, SyncResult};
 use kiwi_core::geometry::{Pose, so3_exp};
@@ -141,7 +144,9 @@ fn write_episode(spec: &Synthetic, root: &Path, name: &str, verdict: Verdict) {
             );
             writeln!(
                 csv,
-                "{ts},{t_cam},{pose},{pose},1.000e-3,2.000e-3,1.500e-3,2.500e-3,{support},front,{opening},{unit},0.900"
+                "{ts},{t_cam},{pose},{pose},1.000e-3,2.000e-3,1.500e-3,2.500e-3,{support},front,{opening},{unit},0.900,{:.6},{:.6}",
+                p.z + FLOOR_DEPTH_M,
+                p.z + FLOOR_DEPTH_M
             )
             .unwrap();
         }
