@@ -11,6 +11,7 @@
 
 pub mod batch;
 pub mod error;
+pub mod evaluate;
 pub mod export;
 pub mod floor;
 pub mod formats;

@@ -283,6 +283,36 @@ fn a_killed_run_resumes_to_byte_identical_results() {
             .flatten()
             .any(|e| { e.file_name().to_string_lossy().starts_with(".tmp-") })
     );
+
+    // The map-sharing ablation on the finished session: KIWI's column is the pipeline's own
+    // supported fraction of the right wrist, on the same frames.
+    let out = Command::new(KIWI)
+        .args(["evaluate", "ablation", "--json", "--session"])
+        .arg(&a)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let ablation: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    println!("ablation: {ablation}");
+    let rows = ablation["episodes"].as_array().unwrap();
+    assert!(!rows.is_empty(), "{ablation}");
+    for row in rows {
+        let frames = row["frames"].as_u64().unwrap() as f64;
+        let kiwi = row["kiwi_supported"].as_u64().unwrap() as f64 / frames;
+        let reported = row["reported_fraction"].as_f64().unwrap();
+        assert!((kiwi - reported).abs() < 1e-12, "{row}");
+        assert!(row["cross_hand_supported"].as_u64().unwrap() as f64 <= frames);
+    }
+    assert!(
+        a.parent()
+            .unwrap()
+            .join("evaluation/ablation.json")
+            .is_file()
+    );
 }
 
 #[test]

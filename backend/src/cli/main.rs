@@ -4,6 +4,7 @@ use anyhow::Result;
 use clap::{Parser, Subcommand};
 
 mod batch;
+mod evaluate;
 mod export;
 mod fuse;
 mod gripper;
@@ -90,6 +91,10 @@ enum Command {
     /// time, the sync graph, gripper openings, the verdict with its reasons and the stage
     /// timings. `kiwi run` writes the same page as its last stage (SESSION/report/index.html).
     Report(report::ReportArgs),
+    /// The paper's evaluations on a session after `kiwi run`: `ablation` (front-only
+    /// cross-hand localization against KIWI's support, per episode and in total).
+    #[command(subcommand)]
+    Evaluate(evaluate::EvaluateCommand),
 }
 
 /// Split `NAME=VALUE`.
@@ -113,6 +118,7 @@ fn output(command: &Command) -> Option<&std::path::Path> {
         Command::Export(a) => Some(&a.out),
         Command::Report(a) => a.out.as_deref(),
         Command::Run(_)
+        | Command::Evaluate(_)
         | Command::Status(_)
         | Command::Batch(_)
         | Command::Sync(_)
@@ -152,6 +158,7 @@ fn main() -> Result<()> {
         Command::Ingest(args) => ingest::run_ingest_cmd(&args)?,
         Command::Export(args) => export::run_export_cmd(&args)?,
         Command::Report(args) => report::run_report_cmd(&args)?,
+        Command::Evaluate(command) => evaluate::run_evaluate_cmd(&command)?,
     }
     Ok(())
 }

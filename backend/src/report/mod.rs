@@ -150,6 +150,8 @@ pub struct SessionReport {
     pub episodes: Vec<EpisodeReport>,
     /// The session stages (maps, tools, metric recovery, placements, exports).
     pub session_stages: Vec<StageTiming>,
+    /// The map-sharing ablation (`kiwi evaluate ablation`), when it was run.
+    pub ablation: Option<crate::evaluate::ablation::AblationReport>,
 }
 
 /// What [`write_report`] wrote.
@@ -223,7 +225,16 @@ pub fn gather(ctx: &SessionContext) -> SessionReport {
             report
         })
         .collect();
+    let ablation_path = ctx
+        .root
+        .join(crate::evaluate::EVALUATION_DIR)
+        .join(crate::evaluate::ablation::ABLATION_FILE);
+    let ablation = ablation_path
+        .is_file()
+        .then(|| read_json_file(&ablation_path, "ablation record").ok())
+        .flatten();
     SessionReport {
+        ablation,
         name: ctx.session.name.clone(),
         map_episode: ctx.session.map_episode.clone(),
         wrists: ctx

@@ -171,6 +171,7 @@ pub fn render(report: &SessionReport) -> Result<Page> {
     for ep in &report.episodes {
         episode_section(&mut w, report, ep)?;
     }
+    ablation_section(&mut w.html, report);
     w.html
         .push_str("<h2 id=\"session-stages\">Session stages</h2>\n");
     if let Some(note) = &report.landmarks_note {
@@ -182,6 +183,54 @@ pub fn render(report: &SessionReport) -> Result<Page> {
         html: w.html,
         plots: w.plots,
     })
+}
+
+/// The map-sharing ablation's table (paper `tab:eval-map-sharing`), or how to make it.
+fn ablation_section(html: &mut String, report: &SessionReport) {
+    html.push_str("<h2 id=\"ablation\">Front-only ablation</h2>\n");
+    let Some(a) = &report.ablation else {
+        html.push_str(
+            "<p class=\"note\">Not evaluated: `kiwi evaluate ablation --session …` localizes the \
+             right front lens in the left front map (front-only, cross-hand) and compares its \
+             support with KIWI's on the same frames.</p>\n",
+        );
+        return;
+    };
+    let pct = |n: usize, d: usize| 100.0 * n as f64 / d.max(1) as f64;
+    let _ = writeln!(
+        html,
+        "<p>Right front frames supported by front-only cross-hand localization (right front in \
+         {}) and by KIWI.</p>\n<table><tr><th>episode</th><th>frames</th><th>front-only</th>\
+         <th>KIWI</th></tr>",
+        esc(&a.map)
+    );
+    let rows = a
+        .episodes
+        .iter()
+        .map(|e| {
+            (
+                e.episode.as_str(),
+                e.frames,
+                e.cross_hand_supported,
+                e.kiwi_supported,
+            )
+        })
+        .chain(std::iter::once((
+            "total",
+            a.frames,
+            a.cross_hand_supported,
+            a.kiwi_supported,
+        )));
+    for (name, frames, cross, kiwi) in rows {
+        let _ = writeln!(
+            html,
+            "<tr><td>{}</td><td>{frames}</td><td>{:.1} %</td><td>{:.1} %</td></tr>",
+            esc(name),
+            pct(cross, frames),
+            pct(kiwi, frames)
+        );
+    }
+    html.push_str("</table>\n");
 }
 
 fn tool_name(t: ToolKind) -> &'static str {
@@ -941,6 +990,7 @@ mod tests {
             landmarks_note: None,
             episodes,
             session_stages: Vec::new(),
+            ablation: None,
         }
     }
 
