@@ -46,8 +46,9 @@ use crate::sync::{CameraStatus, SyncResult};
 /// closer than this are the same frame.
 const OPENING_TIME_MATCH_S: f64 = 2e-6;
 
-/// A floor whose windows spread more than this is suspect (m): the heights' accuracy goal.
-const SUSPECT_FLOOR_SPREAD_M: f64 = 0.01;
+/// A floor whose height is uncertain by more than this is suspect (m): half the heights'
+/// accuracy goal of 1 cm, leaving the other half to the trajectory.
+const SUSPECT_FLOOR_SE_M: f64 = 0.005;
 
 /// Schema of `quality.json`.
 pub const QUALITY_SCHEMA_VERSION: u32 = 1;
@@ -515,22 +516,37 @@ fn grade_wrist(v: &mut VerdictBuilder, name: &str, q: &WristQuality) {
     }
 }
 
-/// Grade the floor: a floor whose windows spread more than the heights' accuracy goal makes
-/// the heights above it suspect. No floor is not a fault of the trajectories: the heights stay
-/// empty and `quality.json`'s `floor` section says why.
+/// Grade the floor: its height is uncertain by the standard error of the windows' median
+/// (1.2533 × spread / √windows); above [`SUSPECT_FLOOR_SE_M`], or resting on one window, the
+/// heights above the floor are suspect. No floor is not a fault of the trajectories: the
+/// heights stay empty and `quality.json`'s `floor` section says why.
 fn grade_floor(v: &mut VerdictBuilder, f: &crate::floor::FloorSummary) {
-    if let crate::floor::Floor::Found {
+    let crate::floor::Floor::Found {
         spread_m, windows, ..
     } = f.floor
-        && spread_m > SUSPECT_FLOOR_SPREAD_M
-    {
+    else {
+        return;
+    };
+    if windows < 2 {
+        v.add(
+            Verdict::Suspect,
+            "floor: found in one window only; the heights above the floor rest on it (see \
+             floor_windows.csv)"
+                .to_string(),
+        );
+        return;
+    }
+    let standard_error = 1.2533 * spread_m / (windows as f64).sqrt();
+    if standard_error > SUSPECT_FLOOR_SE_M {
         v.add(
             Verdict::Suspect,
             format!(
-                "floor: its {windows} windows spread {:.1} cm about it (> {:.0} cm): the heights \
-                 above the floor are uncertain by as much; see floor_windows.csv",
+                "floor: uncertain by {:.1} mm (its {windows} windows spread {:.1} cm about it; \
+                 suspect above {:.0} mm): the heights above the floor are uncertain by as much; \
+                 see floor_windows.csv",
+                standard_error * 1e3,
                 spread_m * 1e2,
-                SUSPECT_FLOOR_SPREAD_M * 1e2
+                SUSPECT_FLOOR_SE_M * 1e3
             ),
         );
     }
