@@ -604,9 +604,10 @@ pub fn pool(windows: &mut [WindowEstimate], counts: &[WindowCounts], band: [f64;
     if let Some(level) = level {
         judge(windows, level, band);
     }
+    // Without a level that enough windows found, the windows' floors disagree: no guess.
     let accepted: Vec<(f64, f64)> = windows
         .iter()
-        .filter(|w| w.status == WindowStatus::Accepted)
+        .filter(|w| level.is_some() && w.status == WindowStatus::Accepted)
         .filter_map(|w| Some((w.floor_z_m?, 1.0 / w.sigma_m?.max(MIN_SIGMA_M).powi(2))))
         .collect();
     let Some(z_m) = weighted_median(accepted.clone()) else {
@@ -801,4 +802,94 @@ pub fn windows_csv(windows: &[WindowEstimate], band: [f64; 2]) -> String {
         );
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A surface `z` in the scene seen from a camera at `camera_z`.
+    fn surface(z: f64, camera_z: f64) -> Surface {
+        Surface {
+            depth_m: camera_z - z,
+            z_m: z,
+            support: 0.2,
+            votes: 100,
+            sigma_m: 0.003,
+        }
+    }
+
+    /// A swept window of the left wrist whose sweep saw `sweep` and whose stereo saw `stereo`,
+    /// judged as `wrist_windows` judges it.
+    fn window(frame: usize, sweep: &[f64], stereo: &[f64]) -> WindowEstimate {
+        let camera_z = 1.0;
+        let sweep: Vec<Surface> = sweep.iter().map(|&z| surface(z, camera_z)).collect();
+        let stereo: Vec<Surface> = stereo.iter().map(|&z| surface(z, camera_z)).collect();
+        let band = DEFAULT_CAMERA_HEIGHT_M;
+        let (floor_z_m, sigma_m, status) =
+            match combine(floor_of(&sweep, band), floor_of(&stereo, band)) {
+                Ok((z, s)) => (Some(z), Some(s), WindowStatus::Accepted),
+                Err(status) => (None, None, status),
+            };
+        WindowEstimate {
+            side: Side::Left,
+            frame,
+            t_camera: frame as f64,
+            t_session: None,
+            camera_z_m: camera_z,
+            baseline_m: 0.1,
+            sweep,
+            stereo,
+            sweep_support: Vec::new(),
+            floor_z_m,
+            sigma_m,
+            status,
+        }
+    }
+
+    fn counts(n: usize) -> Vec<WindowCounts> {
+        vec![WindowCounts {
+            windows: n,
+            swept: n,
+            ..WindowCounts::default()
+        }]
+    }
+
+    #[test]
+    fn the_floor_is_the_lowest_level_enough_windows_found() {
+        // Six windows see the floor, two see only a low platform, and one channel of another
+        // window sees only the platform while the other sees the floor.
+        let mut windows: Vec<WindowEstimate> = (0..6)
+            .map(|k| window(k, &[0.001 * k as f64], &[]))
+            .collect();
+        windows.push(window(6, &[0.2], &[0.2]));
+        windows.push(window(7, &[0.2], &[]));
+        windows.push(window(8, &[0.002], &[0.2]));
+        assert_eq!(windows[8].status, WindowStatus::Conflict);
+        let floor = pool(&mut windows, &counts(9), DEFAULT_CAMERA_HEIGHT_M);
+        let z = floor.z_m().expect("a floor");
+        assert!(z.abs() < 0.005, "{floor:?}");
+        assert_eq!(windows[6].status, WindowStatus::AboveFloor);
+        assert_eq!(windows[8].status, WindowStatus::Accepted);
+        let surfaces = surfaces_above(&windows, &floor);
+        assert!(
+            surfaces.iter().any(|s| (s.z_m - 0.2).abs() < 0.01),
+            "{surfaces:?}"
+        );
+    }
+
+    #[test]
+    fn windows_that_all_disagree_give_no_floor_with_the_reason() {
+        let mut windows = vec![
+            window(0, &[0.0], &[]),
+            window(1, &[0.12], &[]),
+            window(2, &[0.24], &[]),
+            window(3, &[0.36], &[]),
+        ];
+        let floor = pool(&mut windows, &counts(4), DEFAULT_CAMERA_HEIGHT_M);
+        let Floor::NoFloor { reason } = floor else {
+            panic!("expected no floor, got {floor:?}");
+        };
+        assert!(reason.contains("disagreed"), "{reason}");
+    }
 }
