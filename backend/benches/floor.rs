@@ -13,10 +13,7 @@ mod truth;
 
 use std::time::Instant;
 
-use kiwi_backend::floor::{FloorOptions, FrontLens, pool, surfaces_above, wrist_windows};
-use kiwi_backend::formats::calibration::exposure_centre_delay;
-use kiwi_backend::frames::FrameSource;
-use kiwi_core::artifact::UnitCalibration;
+use kiwi_backend::floor::{FloorOptions, pool, surfaces_above};
 use kiwi_core::layout::{EpisodeLayout, Session, Side};
 use kiwi_fixtures::scenario::Scenario;
 use kiwi_fixtures::session::{SessionOptions, write_session};
@@ -60,29 +57,8 @@ fn main() {
     let mut qualifying = 0usize;
     let start = Instant::now();
     for side in [Side::Left, Side::Right] {
-        let camera = side.camera_name();
         let unit = &session.wrists[&side].unit;
-        let cal =
-            UnitCalibration::load(&root.join("truth/units").join(unit).join("calibration.json"))
-                .unwrap();
-        let front = cal.lens("front").unwrap();
-        let meta = episode.read_meta(camera).unwrap();
-        let readout = 2.0 * exposure_centre_delay(&cal, &meta.mode, meta.fps).unwrap();
-        let nodes = truth::truth_nodes(&truth::truth_rows(
-            &episode.truth_dir().join(camera).join("imu_states.csv"),
-        ));
-        let model = front.camera().unwrap();
-        let lens = FrontLens {
-            side,
-            nodes: &nodes,
-            cam_from_imu: front.cam_from_imu().unwrap(),
-            time_shift_s: front.time_shift_s.unwrap(),
-            readout_s: readout,
-            camera: &model,
-            clock: None,
-        };
-        let source = FrameSource::open(&episode.lens_dir(camera, "front")).unwrap();
-        let (w, c) = wrist_windows(&source, &lens, &options, &|_, _| {}).unwrap();
+        let (w, c) = truth::truth_floor_windows(root, &episode, unit, side, &options);
         qualifying += c.windows - c.unposed - c.not_looking_down - c.no_baseline;
         windows.extend(w);
         counts.push(c);

@@ -8,14 +8,10 @@
 
 mod common;
 
-use common::truth::{truth_nodes, truth_rows};
+use common::truth::truth_floor_windows;
 use kiwi_backend::floor::{
-    EpisodeSurface, Floor, FloorOptions, FrontLens, WindowEstimate, pool, surfaces_above,
-    wrist_windows,
+    EpisodeSurface, Floor, FloorOptions, WindowEstimate, pool, surfaces_above,
 };
-use kiwi_backend::formats::calibration::exposure_centre_delay;
-use kiwi_backend::frames::FrameSource;
-use kiwi_core::artifact::UnitCalibration;
 use kiwi_core::layout::{EpisodeLayout, Session, Side};
 use kiwi_fixtures::scenario::Scenario;
 use kiwi_fixtures::scene::{PLATFORM_MAX, RoomKind, SceneOptions, TABLE_TOP_Z};
@@ -52,29 +48,8 @@ fn floor_of(
     let mut windows = Vec::new();
     let mut counts = Vec::new();
     for side in [Side::Left, Side::Right] {
-        let camera = side.camera_name();
         let unit = &session.wrists[&side].unit;
-        let cal =
-            UnitCalibration::load(&root.join("truth/units").join(unit).join("calibration.json"))
-                .unwrap();
-        let front = cal.lens("front").unwrap();
-        let meta = episode.read_meta(camera).unwrap();
-        let readout = 2.0 * exposure_centre_delay(&cal, &meta.mode, meta.fps).unwrap();
-        let nodes = truth_nodes(&truth_rows(
-            &episode.truth_dir().join(camera).join("imu_states.csv"),
-        ));
-        let model = front.camera().unwrap();
-        let lens = FrontLens {
-            side,
-            nodes: &nodes,
-            cam_from_imu: front.cam_from_imu().unwrap(),
-            time_shift_s: front.time_shift_s.unwrap(),
-            readout_s: readout,
-            camera: &model,
-            clock: None,
-        };
-        let source = FrameSource::open(&episode.lens_dir(camera, "front")).unwrap();
-        let (w, c) = wrist_windows(&source, &lens, &options, &|_, _| {}).unwrap();
+        let (w, c) = truth_floor_windows(root, &episode, unit, side, &options);
         windows.extend(w);
         counts.push(c);
     }

@@ -59,7 +59,8 @@ const MAX_HEIGHT_ERROR_M: f64 = 0.02;
 /// An episode's published floor: `floor.json`, its windows and figure, the `floor` section of
 /// `quality.json`; when a floor was found, every front camera's `cam_height_m` against the
 /// simulator's camera height (its world's floor is at z = 0 and the scene frame is level).
-fn floor_heights_match_the_truth(root: &Path, ep: &str, quality: &serde_json::Value) {
+/// Whether a floor was found (and its heights checked).
+fn floor_heights_match_the_truth(root: &Path, ep: &str, quality: &serde_json::Value) -> bool {
     let episode = root.join("episodes").join(ep);
     let out = episode.join("out");
     for file in ["floor.json", "floor_windows.csv", "floor.svg"] {
@@ -73,7 +74,7 @@ fn floor_heights_match_the_truth(root: &Path, ep: &str, quality: &serde_json::Va
             !floor["floor"]["reason"].as_str().unwrap().is_empty(),
             "{floor}"
         );
-        return;
+        return false;
     }
     for wrist in ["left", "right"] {
         let mut reader = csv::Reader::from_path(out.join(format!("{wrist}.csv"))).unwrap();
@@ -112,6 +113,7 @@ fn floor_heights_match_the_truth(root: &Path, ep: &str, quality: &serde_json::Va
             "{ep} {wrist}: median height error {median:.4} m"
         );
     }
+    true
 }
 
 #[test]
@@ -161,6 +163,7 @@ fn a_killed_run_resumes_to_byte_identical_results() {
             .unwrap_or_else(|| panic!("no head stage for {ep}: {stages:?}"));
         assert_eq!(s["outcome"], "ran", "{s}");
     }
+    let mut floors_checked = 0;
     for ep in &usable {
         let out = a.parent().unwrap().join(format!("episodes/{ep}/out"));
         for file in ["head.csv", "head.tum", "head_camera.csv"] {
@@ -178,8 +181,9 @@ fn a_killed_run_resumes_to_byte_identical_results() {
         }
         assert!(head["samples"].as_u64().unwrap() > 0, "{head}");
         println!("{ep} head: {head}");
-        floor_heights_match_the_truth(a.parent().unwrap(), ep, &q);
+        floors_checked += usize::from(floor_heights_match_the_truth(a.parent().unwrap(), ep, &q));
     }
+    assert!(floors_checked > 0, "no usable episode found its floor");
     // The floor stage ran per episode and the outputs publish its files.
     for ep in ["ep000", "ep001"] {
         let s = stages

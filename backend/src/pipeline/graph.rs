@@ -373,36 +373,29 @@ pub fn build(ctx: &SessionContext, episodes: &[String]) -> Vec<StageNode> {
         for &side in &sides {
             deps.push(id_of(&StageKind::Placement { side }));
         }
-        if ctx.session.head.is_some() {
-            let head = StageKind::Head {
-                episode: episode.clone(),
-            };
-            let mut head_deps = vec![id_of(&StageKind::Sync {
-                episode: episode.clone(),
-            })];
-            head_deps.extend(sides.iter().map(|&side| {
-                id_of(&StageKind::Fusion {
-                    episode: episode.clone(),
-                    side,
-                })
-            }));
-            deps.push(id_of(&head));
-            push(head, head_deps);
-        }
-        let floor = StageKind::Floor {
+        // The head and the floor read the episode's clocks and both wrists' fused trajectories.
+        let after_fusion: Vec<StageId> = std::iter::once(id_of(&StageKind::Sync {
             episode: episode.clone(),
-        };
-        let mut floor_deps = vec![id_of(&StageKind::Sync {
-            episode: episode.clone(),
-        })];
-        floor_deps.extend(sides.iter().map(|&side| {
+        }))
+        .chain(sides.iter().map(|&side| {
             id_of(&StageKind::Fusion {
                 episode: episode.clone(),
                 side,
             })
-        }));
+        }))
+        .collect();
+        if ctx.session.head.is_some() {
+            let head = StageKind::Head {
+                episode: episode.clone(),
+            };
+            deps.push(id_of(&head));
+            push(head, after_fusion.clone());
+        }
+        let floor = StageKind::Floor {
+            episode: episode.clone(),
+        };
         deps.push(id_of(&floor));
-        push(floor, floor_deps);
+        push(floor, after_fusion);
         push(
             StageKind::Outputs {
                 episode: episode.clone(),

@@ -1373,6 +1373,23 @@ fn sync_of(env: &StageEnv<'_>, episode: &str) -> Result<crate::sync::SyncResult>
     )
 }
 
+/// The files `names` of a stage's folder `dir` as `(name, bytes)`, for `outputs` to publish.
+fn stage_files(dir: &Path, names: &[&str], stage: &str) -> Result<Vec<(String, Vec<u8>)>> {
+    names
+        .iter()
+        .map(|name| {
+            let path = dir.join(name);
+            let bytes = std::fs::read(&path).map_err(|e| {
+                input(
+                    &path,
+                    format!("cannot read the {stage} stage's file: {e}; re-run"),
+                )
+            })?;
+            Ok((name.to_string(), bytes))
+        })
+        .collect()
+}
+
 fn run_outputs(env: &StageEnv<'_>, episode: &str) -> Result<()> {
     let ctx = env.ctx;
     let sync = sync_of(env, episode)?;
@@ -1454,19 +1471,8 @@ fn run_outputs(env: &StageEnv<'_>, episode: &str) -> Result<()> {
             let dir = env.dep_dir(&StageKind::Head {
                 episode: episode.to_string(),
             });
-            let mut files = Vec::new();
-            for name in HEAD_FILES {
-                let path = dir.join(name);
-                let bytes = std::fs::read(&path).map_err(|e| {
-                    input(
-                        &path,
-                        format!("cannot read the head stage's file: {e}; re-run"),
-                    )
-                })?;
-                files.push((name.to_string(), bytes));
-            }
             Some(crate::outputs::HeadOutputs {
-                files,
+                files: stage_files(&dir, &HEAD_FILES, "head")?,
                 summary: read_json_file(&dir.join(HEAD_SUMMARY_FILE), "head stage record")?,
             })
         }
@@ -1474,20 +1480,19 @@ fn run_outputs(env: &StageEnv<'_>, episode: &str) -> Result<()> {
     let floor_dir = env.dep_dir(&StageKind::Floor {
         episode: episode.to_string(),
     });
-    let mut floor_files = Vec::new();
-    for name in std::iter::once(FLOOR_SUMMARY_FILE).chain(FLOOR_FILES) {
-        let path = floor_dir.join(name);
-        let bytes = std::fs::read(&path).map_err(|e| {
-            input(
-                &path,
-                format!("cannot read the floor stage's file: {e}; re-run"),
-            )
-        })?;
-        floor_files.push((name.to_string(), bytes));
-    }
+    let summary_path = floor_dir.join(FLOOR_SUMMARY_FILE);
+    let mut floor_files = stage_files(&floor_dir, &FLOOR_FILES, "floor")?;
+    let summary_bytes = stage_files(&floor_dir, &[FLOOR_SUMMARY_FILE], "floor")?;
+    let summary = serde_json::from_slice(&summary_bytes[0].1).map_err(|e| {
+        input(
+            &summary_path,
+            format!("not a floor stage record: {e}; re-run `kiwi run --force floor`"),
+        )
+    })?;
+    floor_files.extend(summary_bytes);
     let floor = Some(crate::outputs::FloorOutputs {
         files: floor_files,
-        summary: read_json_file(&floor_dir.join(FLOOR_SUMMARY_FILE), "floor stage record")?,
+        summary,
     });
     let inputs = crate::outputs::EpisodeInputs {
         episode: episode.to_string(),

@@ -54,3 +54,44 @@ pub fn truth_nodes(rows: &[TruthRow]) -> Vec<FusedNode> {
         })
         .collect()
 }
+
+/// A wrist's floor windows on the simulator's truth: its front lens with the exact calibration
+/// the simulator keeps beside its truth (`truth/units/<unit>/`), posed on the wrist's true IMU
+/// trajectory, through the floor stage's own window function.
+pub fn truth_floor_windows(
+    root: &Path,
+    episode: &kiwi_core::layout::EpisodeLayout,
+    unit: &str,
+    side: kiwi_core::layout::Side,
+    options: &kiwi_backend::floor::FloorOptions,
+) -> (
+    Vec<kiwi_backend::floor::WindowEstimate>,
+    kiwi_backend::floor::WindowCounts,
+) {
+    let camera = side.camera_name();
+    let cal = kiwi_core::artifact::UnitCalibration::load(
+        &root.join("truth/units").join(unit).join("calibration.json"),
+    )
+    .unwrap();
+    let front = cal.lens("front").unwrap();
+    let meta = episode.read_meta(camera).unwrap();
+    let readout = 2.0
+        * kiwi_backend::formats::calibration::exposure_centre_delay(&cal, &meta.mode, meta.fps)
+            .unwrap();
+    let nodes = truth_nodes(&truth_rows(
+        &episode.truth_dir().join(camera).join("imu_states.csv"),
+    ));
+    let model = front.camera().unwrap();
+    let lens = kiwi_backend::floor::FrontLens {
+        side,
+        nodes: &nodes,
+        cam_from_imu: front.cam_from_imu().unwrap(),
+        time_shift_s: front.time_shift_s.unwrap(),
+        readout_s: readout,
+        camera: &model,
+        clock: None,
+    };
+    let source =
+        kiwi_backend::frames::FrameSource::open(&episode.lens_dir(camera, "front")).unwrap();
+    kiwi_backend::floor::wrist_windows(&source, &lens, options, &|_, _| {}).unwrap()
+}
