@@ -325,6 +325,17 @@ impl MarkerFinder {
         Some((p.y / f64::from(h.max(2) - 1)).clamp(0.0, 1.0))
     }
 
+    /// Each corner's image row over the last row (0 at the top): when it was exposed within a
+    /// rolling-shutter readout.
+    pub fn corner_row_fractions(&self, corners: &[Vector3<f64>; 4]) -> Option<[f64; 4]> {
+        let (_, h) = self.camera.resolution();
+        let mut rows = [0.0; 4];
+        for (r, b) in rows.iter_mut().zip(corners) {
+            *r = (self.camera.project(b)?.y / f64::from(h.max(2) - 1)).clamp(0.0, 1.0);
+        }
+        Some(rows)
+    }
+
     /// Corners found again on a view aimed at the rough ones.
     fn refine(
         &self,
@@ -348,8 +359,167 @@ impl MarkerFinder {
             _ => return Ok(None),
         };
         let view = TagView::new(&self.camera, &centre, half, REFINE_UPSAMPLE * px_per_rad)?;
-        self.detector.detect(&view, image)
+        let Some(grey) = view.grey(image) else {
+            return Ok(None);
+        };
+        let side = view.side();
+        let Some(found) = self.detector.detect_grey(&grey, side, side)? else {
+            return Ok(None);
+        };
+        let corners = edge_corners(&grey, side, &found).unwrap_or(found);
+        Ok(Some(corners.map(|p| view.bearing(p.x, p.y))))
     }
+}
+
+/// Edge samples along each side start and end this far (share of the side) from its corners:
+/// blur rounds a square's corners, never the middle of its edges.
+const EDGE_SPAN: (f64, f64) = (0.2, 0.8);
+/// Half-length of the profile across an edge, as a share of the side: a third of an ArUco
+/// 4x4 cell (a sixth of the side), so the inner end stays on the black border.
+const EDGE_PROFILE_SHARE: f64 = 1.0 / 18.0;
+/// Shortest profile half-length (px): room for the blur of the view.
+const MIN_EDGE_PROFILE_PX: f64 = 1.5;
+/// Step along an edge profile (px).
+const EDGE_PROFILE_STEP_PX: f64 = 0.25;
+/// Least grey step (DN) across an edge for a sample to count: a printed black-on-white edge
+/// steps by well over 100, a shadow or a smudge by less.
+const MIN_EDGE_CONTRAST: f64 = 40.0;
+/// Fewest edge samples that fit a side's line.
+const MIN_EDGE_SAMPLES: usize = 6;
+/// A sample further than this (px) from its side's first line is dropped before the refit.
+const MAX_EDGE_RESIDUAL_PX: f64 = 1.0;
+/// Largest move (px) of a corner by the edge fit: more means the fit found something other
+/// than the marker's border, and the detector's corner stands.
+const MAX_EDGE_CORNER_SHIFT_PX: f64 = 2.0;
+
+/// Bilinear grey value at `(x, y)` (pixel centres at integers), `None` outside.
+fn grey_at(grey: &[u8], side: usize, x: f64, y: f64) -> Option<f64> {
+    if !(x >= 0.0 && y >= 0.0 && x <= side as f64 - 1.0 && y <= side as f64 - 1.0) {
+        return None;
+    }
+    let (x0, y0) = (x.floor() as usize, y.floor() as usize);
+    let (x1, y1) = ((x0 + 1).min(side - 1), (y0 + 1).min(side - 1));
+    let (fx, fy) = (x - x0 as f64, y - y0 as f64);
+    let g = |xx: usize, yy: usize| f64::from(grey[yy * side + xx]);
+    Some(
+        (g(x0, y0) * (1.0 - fx) + g(x1, y0) * fx) * (1.0 - fy)
+            + (g(x0, y1) * (1.0 - fx) + g(x1, y1) * fx) * fy,
+    )
+}
+
+/// Where the profile across an edge at `p` (normal `n`, half-length `reach`) crosses the grey
+/// level halfway between its two ends, nearest `p`; `None` on a weak or unreadable edge.
+fn edge_crossing(
+    grey: &[u8],
+    side: usize,
+    p: &nalgebra::Point2<f64>,
+    n: &nalgebra::Vector2<f64>,
+    reach: f64,
+) -> Option<nalgebra::Point2<f64>> {
+    let steps = (2.0 * reach / EDGE_PROFILE_STEP_PX).round() as usize;
+    let mut profile = Vec::with_capacity(steps + 1);
+    for j in 0..=steps {
+        let o = -reach + j as f64 * EDGE_PROFILE_STEP_PX;
+        let q = p + n * o;
+        profile.push((o, grey_at(grey, side, q.x, q.y)?));
+    }
+    let ends = 3.min(profile.len() / 2);
+    let lo = profile[..ends].iter().map(|v| v.1).sum::<f64>() / ends as f64;
+    let hi = profile[profile.len() - ends..]
+        .iter()
+        .map(|v| v.1)
+        .sum::<f64>()
+        / ends as f64;
+    if (hi - lo).abs() < MIN_EDGE_CONTRAST {
+        return None;
+    }
+    let mid = 0.5 * (lo + hi);
+    profile
+        .windows(2)
+        .filter(|w| (w[0].1 - mid) * (w[1].1 - mid) <= 0.0 && w[0].1 != w[1].1)
+        .map(|w| w[0].0 + (mid - w[0].1) / (w[1].1 - w[0].1) * (w[1].0 - w[0].0))
+        .min_by(|a, b| a.abs().total_cmp(&b.abs()))
+        .map(|o| p + n * o)
+}
+
+/// A line through `points` by total least squares: a point on it and its direction.
+fn fit_line(
+    points: &[nalgebra::Point2<f64>],
+) -> Option<(nalgebra::Point2<f64>, nalgebra::Vector2<f64>)> {
+    if points.len() < MIN_EDGE_SAMPLES {
+        return None;
+    }
+    let c = points
+        .iter()
+        .map(|p| p.coords)
+        .sum::<nalgebra::Vector2<f64>>()
+        / points.len() as f64;
+    let mut m = nalgebra::Matrix2::<f64>::zeros();
+    for p in points {
+        let d = p.coords - c;
+        m += d * d.transpose();
+    }
+    let eig = m.symmetric_eigen();
+    let k = if eig.eigenvalues[0] >= eig.eigenvalues[1] {
+        0
+    } else {
+        1
+    };
+    let d = eig.eigenvectors.column(k).into_owned();
+    Some((nalgebra::Point2::from(c), d))
+}
+
+/// The marker's corners from its four border edges: points where each edge crosses mid-grey,
+/// a line through each side's points, and the corners where adjacent lines meet. A blurred
+/// square's edges stay where they are while its corners round inward, so corners found this
+/// way are not pulled into the square (the detector's are, by a fraction of a pixel, which
+/// shrinks the marker and lengthens its distance). `None` when an edge cannot be read; the
+/// detector's corners then stand.
+fn edge_corners(
+    grey: &[u8],
+    side: usize,
+    corners: &[nalgebra::Point2<f64>; 4],
+) -> Option<[nalgebra::Point2<f64>; 4]> {
+    let mut lines = Vec::with_capacity(4);
+    for k in 0..4 {
+        let (a, b) = (corners[k], corners[(k + 1) % 4]);
+        let along = b - a;
+        let length = along.norm();
+        if length < 4.0 * MIN_EDGE_SAMPLES as f64 {
+            return None;
+        }
+        let t = along / length;
+        let n = nalgebra::Vector2::new(-t.y, t.x);
+        let reach = (EDGE_PROFILE_SHARE * length).max(MIN_EDGE_PROFILE_PX);
+        let samples = ((EDGE_SPAN.1 - EDGE_SPAN.0) * length).floor() as usize;
+        let points: Vec<nalgebra::Point2<f64>> = (0..=samples)
+            .filter_map(|j| {
+                let p = a + t * (EDGE_SPAN.0 * length + j as f64);
+                edge_crossing(grey, side, &p, &n, reach)
+            })
+            .collect();
+        let (c, d) = fit_line(&points)?;
+        let normal = nalgebra::Vector2::new(-d.y, d.x);
+        let kept: Vec<nalgebra::Point2<f64>> = points
+            .into_iter()
+            .filter(|p| (p - c).dot(&normal).abs() <= MAX_EDGE_RESIDUAL_PX)
+            .collect();
+        lines.push(fit_line(&kept)?);
+    }
+    let mut out = *corners;
+    for k in 0..4 {
+        let (pa, da) = lines[(k + 3) % 4];
+        let (pb, db) = lines[k];
+        // pa + s da = pb + u db.
+        let m = nalgebra::Matrix2::new(da.x, -db.x, da.y, -db.y);
+        let s = m.try_inverse()? * (pb - pa);
+        let corner = pa + da * s.x;
+        if (corner - corners[k]).norm() > MAX_EDGE_CORNER_SHIFT_PX {
+            return None;
+        }
+        out[k] = corner;
+    }
+    Some(out)
 }
 
 #[cfg(test)]

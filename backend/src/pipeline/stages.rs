@@ -848,7 +848,11 @@ fn run_placement(env: &StageEnv<'_>, side: Side) -> Result<()> {
 /// Time from a frame's timestamp (its first row) to its exposure centre (s): half the rolling
 /// readout of the recording mode the camera recorded the episode in (`meta.json`), as the unit's
 /// calibration gives it; 0 for a global shutter or a mode without a known readout.
-fn exposure_centre_delay(ctx: &SessionContext, episode: &str, w: &WristContext) -> Result<f64> {
+pub(crate) fn exposure_centre_delay(
+    ctx: &SessionContext,
+    episode: &str,
+    w: &WristContext,
+) -> Result<f64> {
     let meta = ctx.episode(episode).read_meta(w.camera)?;
     let delay =
         crate::formats::calibration::exposure_centre_delay(&w.calibration, &meta.mode, meta.fps);
