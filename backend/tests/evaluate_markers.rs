@@ -4,7 +4,8 @@
 //! misplaced against the left), and the protocol's median errors must agree with the errors the
 //! same frames have against the truth under the same protocol (alignment on the first 40 %,
 //! median over the last 50 %) within 1 mm, per hand with its own alignment and with the
-//! left-fitted one. The fitted arrangement is checked against the markers' true placement.
+//! left-fitted one. The fitted arrangement is checked against the markers' true placement, and
+//! the command refuses unusable arguments with the fix.
 
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
@@ -320,5 +321,34 @@ fn marker_errors_agree_with_the_truth_within_a_millimetre() {
                 .iter()
                 .all(|e| (e.t_camera - t0) / (t1 - t0) >= SCORE_FROM_FRACTION)
         );
+    }
+
+    // The command refuses what it cannot use before it searches a frame, naming the fix.
+    let kiwi = env!("CARGO_BIN_EXE_kiwi");
+    let toml = root.join("session.toml");
+    for (args, expected) in [
+        (
+            vec!["--episode", episode.as_str(), "--ids", "20"],
+            "--ids takes the two markers' ids",
+        ),
+        (vec!["--episode", "nope"], "no episode `nope`"),
+        (
+            vec!["--episode", episode.as_str(), "--size-mm", "-58"],
+            "--size-mm",
+        ),
+        (
+            vec!["--episode", episode.as_str(), "--ids", "20,20"],
+            "two distinct ids",
+        ),
+    ] {
+        let out = std::process::Command::new(kiwi)
+            .args(["evaluate", "markers", "--session"])
+            .arg(&toml)
+            .args(&args)
+            .output()
+            .unwrap();
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "{args:?} succeeded");
+        assert!(stderr.contains(expected), "{args:?}: {stderr}");
     }
 }

@@ -46,7 +46,7 @@ pub struct MarkersArgs {
     #[arg(long, default_value = "4x4_50")]
     pub dictionary: String,
     /// Their black square's side (mm), as printed and measured.
-    #[arg(long, default_value_t = PAPER_MARKER_SIZE_M * 1e3)]
+    #[arg(long, default_value_t = PAPER_MARKER_SIZE_M * 1e3, allow_negative_numbers = true)]
     pub size_mm: f64,
     /// Fit the rigid alignments on camera positions (trajectory ATE's usual alignment) or on
     /// whole poses (the rotation from the orientations: steadier when the first 40 % of the
