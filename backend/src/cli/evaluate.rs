@@ -8,7 +8,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use kiwi_backend::evaluate::EVALUATION_DIR;
 use kiwi_backend::evaluate::ablation::{ABLATION_FILE, ablation, table};
 use kiwi_backend::evaluate::markers::{
-    AlignmentKind, MarkerPair, PAPER_MARKER_SIZE_M, errors_csv, evaluate_markers,
+    AlignmentKind, MarkerPair, PAPER_MARKER_SIZE_M, errors_csv, evaluate_markers, evaluation_files,
     table as markers_table,
 };
 use kiwi_backend::pipeline::SessionContext;
@@ -133,8 +133,8 @@ fn run_markers(args: &MarkersArgs) -> Result<()> {
     })?;
     bar.finish_and_clear();
     let dir = ctx.root.join(EVALUATION_DIR);
-    let json_path = dir.join(format!("markers-{}.json", args.episode));
-    let csv_path = dir.join(format!("markers-{}.csv", args.episode));
+    let (json_name, csv_name) = evaluation_files(&args.episode);
+    let (json_path, csv_path) = (dir.join(json_name), dir.join(csv_name));
     kiwi_core::io::ensure_outside_dated_set(&json_path)?;
     let text = serde_json::to_string_pretty(&evaluation)?;
     std::fs::create_dir_all(&dir)?;

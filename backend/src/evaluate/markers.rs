@@ -1059,6 +1059,52 @@ pub fn errors_csv(evaluation: &MarkerEvaluation) -> String {
     s
 }
 
+/// File names of an episode's record and scored frames in the session's `evaluation/`.
+pub fn evaluation_files(episode: &str) -> (String, String) {
+    (
+        format!("markers-{episode}.json"),
+        format!("markers-{episode}.csv"),
+    )
+}
+
+/// A row of the scored frames' CSV ([`errors_csv`]).
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+pub struct ScoredFrame {
+    /// Camera folder name.
+    pub camera: String,
+    /// Exposure time on the camera's clock (s).
+    pub t_camera: f64,
+    /// Error with the wrist's own alignment (m).
+    pub error_m: f64,
+    /// Error with the left-fitted alignment (m).
+    pub shared_error_m: Option<f64>,
+}
+
+/// Read the scored frames' CSV.
+pub fn read_errors_csv(path: &std::path::Path) -> Result<Vec<ScoredFrame>> {
+    let bad = |message: String| BackendError::Input {
+        path: path.to_path_buf(),
+        message,
+    };
+    let mut reader = csv::Reader::from_path(path).map_err(|e| {
+        bad(format!(
+            "cannot open: {e}; run `kiwi evaluate markers` again"
+        ))
+    })?;
+    reader
+        .deserialize::<ScoredFrame>()
+        .enumerate()
+        .map(|(i, row)| {
+            row.map_err(|e| {
+                bad(format!(
+                    "line {}: not a scored frame ({e}); run `kiwi evaluate markers` again",
+                    i + 2
+                ))
+            })
+        })
+        .collect()
+}
+
 /// The result as text: per hand, frames and median errors with both alignments.
 pub fn table(evaluation: &MarkerEvaluation) -> String {
     let mut s = format!(

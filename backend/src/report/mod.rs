@@ -152,6 +152,18 @@ pub struct SessionReport {
     pub session_stages: Vec<StageTiming>,
     /// The map-sharing ablation (`kiwi evaluate ablation`), when it was run.
     pub ablation: Option<crate::evaluate::ablation::AblationReport>,
+    /// The marker-referenced evaluations (`kiwi evaluate markers`) of the episodes they were
+    /// run on, in episode order.
+    pub markers: Vec<MarkerResult>,
+}
+
+/// One episode's marker-referenced evaluation with its scored frames.
+#[derive(Debug, Clone, PartialEq)]
+pub struct MarkerResult {
+    /// The record.
+    pub evaluation: crate::evaluate::markers::MarkerEvaluation,
+    /// Its scored frames (empty when their file is missing or unreadable).
+    pub frames: Vec<crate::evaluate::markers::ScoredFrame>,
 }
 
 /// What [`write_report`] wrote.
@@ -233,8 +245,23 @@ pub fn gather(ctx: &SessionContext) -> SessionReport {
         .is_file()
         .then(|| read_json_file(&ablation_path, "ablation record").ok())
         .flatten();
+    let evaluation_dir = ctx.root.join(crate::evaluate::EVALUATION_DIR);
+    let markers = episodes_all
+        .iter()
+        .filter_map(|e| {
+            let (json, csv) = crate::evaluate::markers::evaluation_files(e);
+            let evaluation =
+                read_json_file(&evaluation_dir.join(json), "marker evaluation").ok()?;
+            Some(MarkerResult {
+                evaluation,
+                frames: crate::evaluate::markers::read_errors_csv(&evaluation_dir.join(csv))
+                    .unwrap_or_default(),
+            })
+        })
+        .collect();
     SessionReport {
         ablation,
+        markers,
         name: ctx.session.name.clone(),
         map_episode: ctx.session.map_episode.clone(),
         wrists: ctx

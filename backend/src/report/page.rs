@@ -172,6 +172,7 @@ pub fn render(report: &SessionReport) -> Result<Page> {
         episode_section(&mut w, report, ep)?;
     }
     ablation_section(&mut w.html, report);
+    markers_section(&mut w, report)?;
     w.html
         .push_str("<h2 id=\"session-stages\">Session stages</h2>\n");
     if let Some(note) = &report.landmarks_note {
@@ -231,6 +232,90 @@ fn ablation_section(html: &mut String, report: &SessionReport) {
         );
     }
     html.push_str("</table>\n");
+}
+
+/// The marker-referenced accuracy (paper §5) of each episode it was run on: a table per hand
+/// and the scored frames' errors over time, or how to run it.
+fn markers_section(w: &mut Writer, report: &SessionReport) -> Result<()> {
+    w.html
+        .push_str("<h2 id=\"markers\">Marker-referenced accuracy</h2>\n");
+    if report.markers.is_empty() {
+        w.html.push_str(
+            "<p class=\"note\">Not evaluated: with two fixed ArUco markers in the workspace, \
+             `kiwi evaluate markers --session … --episode …` scores each hand's camera \
+             trajectory against eight-corner marker poses (median translation error over the \
+             last half of the episode).</p>\n",
+        );
+        return Ok(());
+    }
+    w.html.push_str(
+        "<p>Median translation error on the last 50 % of each episode, after a rigid alignment \
+         fitted on the first 40 %: each hand with its own alignment, and with the left hand's \
+         (which keeps the hands' relative placement).</p>\n<table><tr><th>episode</th>\
+         <th>hand</th><th>references</th><th>scored</th><th>own (mm)</th><th>left-fitted (mm)\
+         </th><th>p90 (mm)</th><th>rotation (deg)</th></tr>\n",
+    );
+    for m in &report.markers {
+        let e = &m.evaluation;
+        for h in &e.wrists {
+            let _ = writeln!(
+                w.html,
+                "<tr><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{:.2}</td><td>{}</td>\
+                 <td>{:.2}</td><td>{:.2}</td></tr>",
+                esc(&e.episode),
+                esc(&h.camera),
+                h.references,
+                h.independent.frames,
+                h.independent.median_m * 1e3,
+                h.shared
+                    .map_or("-".to_string(), |a| format!("{:.2}", a.median_m * 1e3)),
+                h.independent.p90_m * 1e3,
+                h.independent.median_rotation_deg
+            );
+        }
+        for (camera, why) in &e.skipped {
+            let _ = writeln!(
+                w.html,
+                "<tr><td>{}</td><td>{}</td><td colspan=\"6\">left out: {}</td></tr>",
+                esc(&e.episode),
+                esc(camera),
+                esc(why)
+            );
+        }
+    }
+    w.html.push_str("</table>\n");
+    for m in &report.markers {
+        if m.frames.is_empty() {
+            continue;
+        }
+        let mut chart = Chart::new(
+            HALF_PX,
+            260,
+            &format!(
+                "{}: marker-referenced error (own alignment)",
+                m.evaluation.episode
+            ),
+            Axis::new("camera time (s)"),
+            Axis::new("translation error (mm)"),
+        );
+        for (k, h) in m.evaluation.wrists.iter().enumerate() {
+            let points: Vec<(f64, f64)> = m
+                .frames
+                .iter()
+                .filter(|f| f.camera == h.camera)
+                .map(|f| (f.t_camera, f.error_m * 1e3))
+                .collect();
+            chart.series.push(Series::new(
+                &h.camera,
+                PALETTE[k % PALETTE.len()],
+                Mark::Points(2),
+                decimate(&points, MAX_PATH_POINTS),
+            ));
+        }
+        let svg = chart.to_svg()?;
+        w.figure("markers", &svg, "");
+    }
+    Ok(())
 }
 
 fn tool_name(t: ToolKind) -> &'static str {
@@ -991,6 +1076,7 @@ mod tests {
             episodes,
             session_stages: Vec::new(),
             ablation: None,
+            markers: Vec::new(),
         }
     }
 
