@@ -63,12 +63,15 @@ demo: build
 	  ./target/release/kiwi-calib certify --unit $$unit --captures $(DEMO_OUT)/captures/$$unit --out $(DEMO_OUT)/units || exit 1; \
 	done
 	./target/release/kiwi-calib units list $(DEMO_OUT)/units
-	./target/release/kiwi-sim session --out $(DEMO_OUT)/session --seed $(DEMO_SEED) --units $(DEMO_OUT)/units --left-unit X5-DEMO-L --right-unit X5-DEMO-R --scenario survey,tabletop,walk --episodes 3 --duration $(DEMO_DURATIONS) --resolution $(DEMO_RESOLUTION) --rate 29.97 --blur-samples 2 --no-head
+	./target/release/kiwi-sim session --out $(DEMO_OUT)/session --seed $(DEMO_SEED) --units $(DEMO_OUT)/units --left-unit X5-DEMO-L --right-unit X5-DEMO-R --scenario survey,tabletop,walk --episodes 3 --duration $(DEMO_DURATIONS) --resolution $(DEMO_RESOLUTION) --rate 29.97 --blur-samples 2 --no-head --workspace-markers
 	./target/release/kiwi inspect $(DEMO_OUT)/session/session.toml
 	./target/release/kiwi run --session $(DEMO_OUT)/session/session.toml
+	./target/release/kiwi evaluate markers --session $(DEMO_OUT)/session/session.toml --episode ep001
+	./target/release/kiwi report --session $(DEMO_OUT)/session/session.toml
 	./target/release/kiwi-sim contact-sheet --out $(DEMO_OUT)/contact_sheet.png --seed $(DEMO_SEED) --tile 256
 	@echo "demo: units X5-DEMO-L and X5-DEMO-R certified into $(DEMO_OUT)/units (reports: $(DEMO_OUT)/units/*/*/report/index.md)"
 	@echo "demo: session in $(DEMO_OUT)/session; each episode's trajectories, TUM files and quality.json in $(DEMO_OUT)/session/episodes/<ep>/out/ (truth in its truth/ folder)"
+	@echo "demo: the tabletop episode's accuracy against the two table markers: $(DEMO_OUT)/session/evaluation/markers-ep001.json"
 	@echo "demo: the session's report page (open it in a browser): $(DEMO_OUT)/session/report/index.html"
 
 test: deps
