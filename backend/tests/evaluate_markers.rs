@@ -340,6 +340,14 @@ fn marker_errors_agree_with_the_truth_within_a_millimetre() {
             vec!["--episode", episode.as_str(), "--ids", "20,20"],
             "two distinct ids",
         ),
+        (
+            vec!["--episode", episode.as_str(), "--ids", "20,50"],
+            "not in dictionary 4x4_50",
+        ),
+        (
+            vec!["--episode", episode.as_str(), "--dictionary", "7x7_9"],
+            "is not one KIWI reads",
+        ),
     ] {
         let out = std::process::Command::new(kiwi)
             .args(["evaluate", "markers", "--session"])

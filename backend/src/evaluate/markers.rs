@@ -591,7 +591,7 @@ pub fn reference_poses(
     size_m: f64,
 ) -> Vec<Reference> {
     let a_from_b = arrangement.a_from_b();
-    let first = solve_references(sightings, &a_from_b, size_m, |s| *s);
+    let first = solve_references(sightings, &a_from_b, size_m);
     let rolling = sightings
         .iter()
         .any(|s| s.corner_dt.iter().flatten().any(|dt| *dt != 0.0));
@@ -610,7 +610,8 @@ pub fn reference_poses(
         })
     };
     let mut corrected: Vec<PairSighting> = Vec::with_capacity(first.len());
-    let mut twists = Vec::with_capacity(first.len());
+    // Index in `sightings` of each corrected sighting.
+    let mut origin = Vec::with_capacity(first.len());
     for (i, r) in first.iter().enumerate() {
         let Some(xi) = twist_at(i) else {
             continue;
@@ -634,31 +635,25 @@ pub fn reference_poses(
             }
         }
         corrected.push(moved);
-        twists.push(r.sighting);
+        origin.push(r.sighting);
     }
-    let mut second = solve_references(&corrected, &a_from_b, size_m, |s| *s);
+    let mut second = solve_references(&corrected, &a_from_b, size_m);
     for r in &mut second {
-        r.sighting = twists[r.sighting];
+        r.sighting = origin[r.sighting];
     }
     second
 }
 
 /// Eight-corner poses of `sightings` (each seeded by the previous reference), kept when they
 /// explain the corners.
-fn solve_references(
-    sightings: &[PairSighting],
-    a_from_b: &Pose,
-    size_m: f64,
-    view: impl Fn(&PairSighting) -> PairSighting,
-) -> Vec<Reference> {
+fn solve_references(sightings: &[PairSighting], a_from_b: &Pose, size_m: f64) -> Vec<Reference> {
     let mut out: Vec<Reference> = Vec::with_capacity(sightings.len());
     for (k, s) in sightings.iter().enumerate() {
-        let s = view(s);
         let previous = out
             .last()
             .filter(|r| (s.t_camera - r.t_camera).abs() <= PREVIOUS_REFERENCE_MAX_AGE_S)
             .map(|r| r.marker_from_cam.inverse());
-        let Some((cam_from_a, rms)) = eight_corner_pose(&s, a_from_b, size_m, previous.as_ref())
+        let Some((cam_from_a, rms)) = eight_corner_pose(s, a_from_b, size_m, previous.as_ref())
         else {
             continue;
         };
@@ -983,6 +978,27 @@ pub fn evaluate_markers(
             message: format!(
                 "the markers are two distinct ids of a positive size; got ids {:?}, size {} m",
                 pair.ids, pair.size_m
+            ),
+        });
+    }
+    let Some(size) = crate::gripper::aruco::dictionary_size(&pair.dictionary) else {
+        return Err(BackendError::Input {
+            path: ctx.toml.clone(),
+            message: format!(
+                "the markers' dictionary `{}` is not one KIWI reads: use {}",
+                pair.dictionary,
+                crate::gripper::aruco::DICTIONARY_NAMES
+            ),
+        });
+    };
+    if let Some(id) = pair.ids.iter().find(|&&id| id >= size) {
+        return Err(BackendError::Input {
+            path: ctx.toml.clone(),
+            message: format!(
+                "marker id {id} is not in dictionary {} (ids 0 to {}): check the printed \
+                 markers' ids",
+                pair.dictionary,
+                size - 1
             ),
         });
     }

@@ -164,6 +164,20 @@ fn dictionary(name: &str) -> Result<opencv::aruco::PREDEFINED_DICTIONARY_NAME> {
     Ok(d)
 }
 
+/// The ArUco dictionaries KIWI reads, by name.
+pub const DICTIONARY_NAMES: &str =
+    "4x4_50, 4x4_100, 4x4_250, 4x4_1000, 5x5_50, 5x5_100, 5x5_250, 6x6_50, 6x6_250 or original";
+
+/// How many markers the named dictionary holds (`None` for a name it does not know).
+pub fn dictionary_size(name: &str) -> Option<usize> {
+    let lower = name.to_ascii_lowercase();
+    if lower == "original" {
+        return Some(1024);
+    }
+    dictionary(name).ok()?;
+    lower.split('_').nth(1)?.parse().ok()
+}
+
 #[allow(clippy::needless_pass_by_value)] // used as `map_err(cv_err)`
 fn cv_err(e: opencv::Error) -> BackendError {
     BackendError::Input {
