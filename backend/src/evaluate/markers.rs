@@ -271,7 +271,8 @@ pub struct WristMarkers {
     pub independent: Ate,
     /// Errors with the left-fitted alignment.
     pub shared: Option<Ate>,
-    /// The scored frames.
+    /// Every frame with a reference and a published pose, each with its phase (the figures
+    /// count the scored ones).
     #[serde(skip)]
     pub errors: Vec<FrameError>,
 }
@@ -781,11 +782,11 @@ pub fn fit_alignment(paired: &[Paired], kind: AlignmentKind) -> Option<Sim3> {
     }
 }
 
-/// The scored frames' errors through `scene_from_marker`.
+/// Every paired frame's error through `scene_from_marker` (the fitted ones' are the fit's
+/// residuals; only the scored ones count in the figures).
 pub fn frame_errors(paired: &[Paired], scene_from_marker: &Sim3) -> Vec<FrameError> {
     paired
         .iter()
-        .filter(|p| p.phase == Phase::Score)
         .map(|p| {
             let reference =
                 scene_from_marker.transform_point(&p.marker_from_cam.translation.vector);
@@ -922,8 +923,9 @@ fn score(
             e.shared_error_m = Some(s.error_m);
         }
     }
-    let translation: Vec<f64> = errors.iter().map(|e| e.error_m).collect();
-    let rotation: Vec<f64> = errors.iter().map(|e| e.rotation_error_rad).collect();
+    let scored = || errors.iter().filter(|e| e.phase == Phase::Score);
+    let translation: Vec<f64> = scored().map(|e| e.error_m).collect();
+    let rotation: Vec<f64> = scored().map(|e| e.rotation_error_rad).collect();
     let Some(independent) = ate(&translation, &rotation) else {
         return Err(estimation(format!(
             "{} front: no reference pose with a published pose in the last {:.0} % of the \
@@ -1045,10 +1047,11 @@ pub fn evaluate_markers(
     Ok(evaluation)
 }
 
-/// The scored frames as CSV: camera, time, both positions (m), errors (m, deg).
+/// Every compared frame as CSV: camera, time, phase (`fit`, `gap`, `score`), both positions
+/// (m), errors (m, deg).
 pub fn errors_csv(evaluation: &MarkerEvaluation) -> String {
     let mut s = String::from(
-        "camera,t_camera,ref_x,ref_y,ref_z,est_x,est_y,est_z,error_m,shared_error_m,\
+        "camera,t_camera,phase,ref_x,ref_y,ref_z,est_x,est_y,est_z,error_m,shared_error_m,\
          rotation_error_deg\n",
     );
     for w in &evaluation.wrists {
@@ -1056,9 +1059,10 @@ pub fn errors_csv(evaluation: &MarkerEvaluation) -> String {
             let (r, p) = (e.reference_scene, e.estimate_scene);
             let _ = writeln!(
                 s,
-                "{},{:.6},{:.6},{:.6},{:.6},{:.6},{:.6},{:.6},{:.6},{},{:.4}",
+                "{},{:.6},{},{:.6},{:.6},{:.6},{:.6},{:.6},{:.6},{:.6},{},{:.4}",
                 w.camera,
                 e.t_camera,
+                e.phase.as_str(),
                 r.x,
                 r.y,
                 r.z,
@@ -1083,20 +1087,22 @@ pub fn evaluation_files(episode: &str) -> (String, String) {
     )
 }
 
-/// A row of the scored frames' CSV ([`errors_csv`]).
+/// A row of the compared frames' CSV ([`errors_csv`]).
 #[derive(Debug, Clone, PartialEq, Deserialize)]
 pub struct ScoredFrame {
     /// Camera folder name.
     pub camera: String,
     /// Exposure time on the camera's clock (s).
     pub t_camera: f64,
+    /// Its part of the sequence.
+    pub phase: Phase,
     /// Error with the wrist's own alignment (m).
     pub error_m: f64,
     /// Error with the left-fitted alignment (m).
     pub shared_error_m: Option<f64>,
 }
 
-/// Read the scored frames' CSV.
+/// Read the compared frames' CSV.
 pub fn read_errors_csv(path: &std::path::Path) -> Result<Vec<ScoredFrame>> {
     let bad = |message: String| BackendError::Input {
         path: path.to_path_buf(),

@@ -16,6 +16,7 @@ use kiwi_plot::{
 
 use super::{EpisodeReport, SessionReport, StageTiming, WristTrack};
 use crate::error::Result;
+use crate::evaluate::markers::Phase;
 use crate::outputs::SupportClass;
 use crate::quality::{Verdict, reason_class};
 use crate::sync::{CameraStatus, SyncResult};
@@ -302,7 +303,7 @@ fn markers_section(w: &mut Writer, report: &SessionReport) -> Result<()> {
             let points: Vec<(f64, f64)> = m
                 .frames
                 .iter()
-                .filter(|f| f.camera == h.camera)
+                .filter(|f| f.camera == h.camera && f.phase == Phase::Score)
                 .map(|f| (f.t_camera, f.error_m * 1e3))
                 .collect();
             chart.series.push(Series::new(
