@@ -529,7 +529,7 @@ mod tests {
     use std::sync::Arc;
 
     use super::*;
-    use kiwi_fixtures::markers::{aruco_texture, aruco_texture_side};
+    use kiwi_fixtures::markers::{aruco_texture_aligned, aruco_texture_side};
     use kiwi_fixtures::render::{Extras, LensRays, RenderOptions, Rigid32, WorldQuad, render};
     use kiwi_fixtures::scene::{Scene, SceneOptions};
     use kiwi_fixtures::unit::{LensModel, SimUnit};
@@ -543,7 +543,7 @@ mod tests {
     fn frame(rays: &LensRays, cam_from_marker: &Pose, size_m: f64, key: u64) -> ColorImage {
         let scene = Scene::new(1, SceneOptions::default());
         let side = aruco_texture_side(size_m);
-        let texture = Arc::new(aruco_texture(ID, size_m, size_m / 200.0).unwrap());
+        let texture = Arc::new(aruco_texture_aligned(ID, size_m, size_m / 200.0).unwrap());
         let corner = Pose::from_parts(
             Translation3::new(-side / 2.0, -side / 2.0, 0.0),
             UnitQuaternion::identity(),
