@@ -306,6 +306,15 @@ fn marker_errors_agree_with_the_truth_within_a_millimetre() {
         if k == 0 {
             assert_eq!(marker_shared, w.independent.median_m);
         }
+        // Both figures are the medians of the scored frames' own errors.
+        assert_eq!(
+            median(scored.iter().map(|e| e.error_m).collect()),
+            w.independent.median_m
+        );
+        assert_eq!(
+            median(scored.iter().map(|e| e.shared_error_m.unwrap()).collect()),
+            marker_shared
+        );
         // The scored frames are the last half of the sequence.
         let (t0, t1) = (w.span.t0, w.span.t1);
         assert!(

@@ -830,6 +830,14 @@ pub fn ate(errors: &[f64], rotation_errors: &[f64]) -> Option<Ate> {
     })
 }
 
+/// The figures over the scored frames of `errors`; `None` when none is scored.
+fn scored_ate(errors: &[FrameError]) -> Option<Ate> {
+    let scored = || errors.iter().filter(|e| e.phase == Phase::Score);
+    let translation: Vec<f64> = scored().map(|e| e.error_m).collect();
+    let rotation: Vec<f64> = scored().map(|e| e.rotation_error_rad).collect();
+    ate(&translation, &rotation)
+}
+
 /// One wrist's sightings, arrangement, references and pairs with its published trajectory.
 struct WristRun {
     camera: String,
@@ -852,20 +860,20 @@ fn wrist_run(
         .root()
         .join(PUBLISHED_DIR)
         .join(format!("{}.csv", w.camera));
+    // A wrist without a published trajectory is left out, not the whole evaluation.
     if !published.is_file() {
-        return Err(BackendError::Input {
-            path: published,
-            message: "missing: the wrist's trajectory is published by `kiwi run`; run it on the \
-                      session first (or see the episode's quality.json for why it has none)"
-                .into(),
-        });
+        return Err(estimation(format!(
+            "{} is missing: the wrist's trajectory is published by `kiwi run`; run it on the \
+             session first (or see the episode's quality.json for why it has none)",
+            published.display()
+        )));
     }
     let rows = read_trajectory(&published)?;
     let (Some(first), Some(last)) = (rows.first(), rows.last()) else {
-        return Err(BackendError::Input {
-            path: published,
-            message: "has no rows: the wrist was not reconstructed; see quality.json".into(),
-        });
+        return Err(estimation(format!(
+            "{} has no rows: the wrist was not reconstructed; see quality.json",
+            published.display()
+        )));
     };
     let span = Span {
         t0: first.t_camera,
@@ -918,15 +926,13 @@ fn score(
         )));
     };
     let mut errors = frame_errors(&run.paired, &alignment);
-    if let Some(shared) = shared {
-        for (e, s) in errors.iter_mut().zip(frame_errors(&run.paired, shared)) {
+    let shared_errors = shared.map(|s| frame_errors(&run.paired, s));
+    if let Some(shared_errors) = &shared_errors {
+        for (e, s) in errors.iter_mut().zip(shared_errors) {
             e.shared_error_m = Some(s.error_m);
         }
     }
-    let scored = || errors.iter().filter(|e| e.phase == Phase::Score);
-    let translation: Vec<f64> = scored().map(|e| e.error_m).collect();
-    let rotation: Vec<f64> = scored().map(|e| e.rotation_error_rad).collect();
-    let Some(independent) = ate(&translation, &rotation) else {
+    let Some(independent) = scored_ate(&errors) else {
         return Err(estimation(format!(
             "{} front: no reference pose with a published pose in the last {:.0} % of the \
              sequence: nothing to score",
@@ -934,17 +940,7 @@ fn score(
             100.0 * (1.0 - SCORE_FROM_FRACTION)
         )));
     };
-    let shared_ate = shared.and_then(|s| {
-        let e: Vec<f64> = frame_errors(&run.paired, s)
-            .iter()
-            .map(|e| e.error_m)
-            .collect();
-        let r: Vec<f64> = frame_errors(&run.paired, s)
-            .iter()
-            .map(|e| e.rotation_error_rad)
-            .collect();
-        ate(&e, &r)
-    });
+    let shared_ate = shared_errors.as_deref().and_then(scored_ate);
     let q = alignment.rotation.coords;
     Ok((
         WristMarkers {
