@@ -33,7 +33,7 @@ use crate::head::marker::{
 use crate::pipeline::SessionContext;
 use crate::pipeline::stages::PUBLISHED_DIR;
 use crate::vision::align::{Sim3, umeyama};
-use crate::vision::geometry::{angular_error, refine_absolute_pose};
+use crate::vision::geometry::{refine_absolute_pose, rms_angular_error};
 
 /// Share of the sequence whose observations fit the arrangement and the alignment.
 pub const FIT_FRACTION: f64 = 0.4;
@@ -128,13 +128,18 @@ pub struct Arrangement {
     pub rms_rad: f64,
 }
 
+/// The pose of a marker lying in another's plane at `(x, y)` turned by `yaw` about its normal.
+fn planar_pose(x: f64, y: f64, yaw: f64) -> Pose {
+    Pose::from_parts(
+        Translation3::new(x, y, 0.0),
+        UnitQuaternion::from_axis_angle(&Vector3::z_axis(), yaw),
+    )
+}
+
 impl Arrangement {
     /// `a_from_b`.
     pub fn a_from_b(&self) -> Pose {
-        Pose::from_parts(
-            Translation3::new(self.x_m, self.y_m, 0.0),
-            UnitQuaternion::from_axis_angle(&Vector3::z_axis(), self.yaw_rad),
-        )
+        planar_pose(self.x_m, self.y_m, self.yaw_rad)
     }
 
     fn with(&self, p: &Vector3<f64>) -> Self {
@@ -379,16 +384,6 @@ fn eight_corners(
     (bearings, points)
 }
 
-/// RMS angle between bearings and the points seen from `cam_from_a`.
-fn rms_angle(cam_from_a: &Pose, bearings: &[Vector3<f64>], points: &[Vector3<f64>]) -> f64 {
-    let sum: f64 = bearings
-        .iter()
-        .zip(points)
-        .map(|(b, x)| angular_error(b, &(cam_from_a * Point3::from(*x)).coords).powi(2))
-        .sum();
-    (sum / bearings.len().max(1) as f64).sqrt()
-}
-
 /// A frame's eight-corner `cam_from_a` and its RMS angle: refined from every start there is
 /// (both IPPE branches of each marker, the previous reference) and the best kept, so neither
 /// marker's planar ambiguity decides the pose.
@@ -415,7 +410,7 @@ fn eight_corner_pose(
         .iter()
         .map(|start| {
             let pose = refine_absolute_pose(start, &bearings, &points, REFERENCE_HUBER_RAD);
-            (pose, rms_angle(&pose, &bearings, &points))
+            (pose, rms_angular_error(&pose, &bearings, &points))
         })
         .filter(|(pose, rms)| {
             rms.is_finite() && pose.translation.vector.iter().all(|v| v.is_finite())
@@ -432,10 +427,7 @@ fn arrangement_residuals(
     out: &mut Vec<f64>,
 ) {
     out.clear();
-    let a_from_b = Pose::from_parts(
-        Translation3::new(p.x, p.y, 0.0),
-        UnitQuaternion::from_axis_angle(&Vector3::z_axis(), p.z),
-    );
+    let a_from_b = planar_pose(p.x, p.y, p.z);
     let square = marker_corners(size_m);
     for (s, cam_from_a) in frames {
         for (b, corner) in s.corners[1].iter().zip(&square) {

@@ -21,7 +21,7 @@ use crate::error::{BackendError, Result};
 use crate::frames::ColorImage;
 use crate::gripper::aruco::{TagDetector, TagView};
 use crate::gripper::{ChannelOrder, ImageView};
-use crate::vision::geometry::{aimed_at, angular_error};
+use crate::vision::geometry::aimed_at;
 
 /// The refinement view spans this many times the marker's angular radius around its centre:
 /// room for the white border and the detector's margin.
@@ -154,15 +154,7 @@ pub fn marker_corners(size_m: f64) -> [Vector3<f64>; 4] {
 
 /// RMS angle between observed bearings and those of the marker's corners at `cam_from_marker`.
 fn corner_error(corners: &[Vector3<f64>; 4], cam_from_marker: &Pose, size_m: f64) -> f64 {
-    let sum: f64 = marker_corners(size_m)
-        .iter()
-        .zip(corners)
-        .map(|(m, b)| {
-            let p = cam_from_marker * nalgebra::Point3::from(*m);
-            angular_error(b, &p.coords).powi(2)
-        })
-        .sum();
-    (sum / 4.0).sqrt()
+    crate::vision::geometry::rms_angular_error(cam_from_marker, corners, &marker_corners(size_m))
 }
 
 /// IPPE's two poses of a square marker of side `size_m` from its corners' bearings (lens

@@ -72,6 +72,21 @@ pub fn angular_error(bearing: &Vector3<f64>, point: &Vector3<f64>) -> f64 {
     bearing.cross(point).norm().atan2(bearing.dot(point))
 }
 
+/// RMS of [`angular_error`] between `bearings` and `points` (their frame) seen from
+/// `cam_from_world` (rad); 0 for no points.
+pub fn rms_angular_error(
+    cam_from_world: &Pose,
+    bearings: &[Vector3<f64>],
+    points: &[Vector3<f64>],
+) -> f64 {
+    let sum: f64 = bearings
+        .iter()
+        .zip(points)
+        .map(|(b, x)| angular_error(b, &(cam_from_world * Point3::from(*x)).coords).powi(2))
+        .sum();
+    (sum / bearings.len().max(1) as f64).sqrt()
+}
+
 /// Jacobian of a camera-frame point `pc = T x` with respect to a left update of its pose,
 /// `T ← exp(δ) T` with `δ = [ω; v]`: `[−[pc]×, I]`.
 pub fn point_jacobian_left_update(pc: &Vector3<f64>) -> Matrix3x6<f64> {
