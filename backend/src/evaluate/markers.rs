@@ -1165,6 +1165,22 @@ pub fn table(evaluation: &MarkerEvaluation) -> String {
     for (camera, why) in &evaluation.skipped {
         let _ = writeln!(s, "{camera}: left out: {why}");
     }
+    if evaluation.alignment == AlignmentKind::Positions
+        && evaluation
+            .wrists
+            .iter()
+            .filter(|w| w.shared.is_some())
+            .count()
+            > 1
+    {
+        let _ = writeln!(
+            s,
+            "note: the left-fitted figure's rotation rests on how far the left's positions spread \
+             over the first 40 %; a fraction of a millimetre of reference error then turns the \
+             other hand by up to a millimetre. --align poses holds it by the orientations \
+             (docs/evaluate.md)."
+        );
+    }
     s
 }
 

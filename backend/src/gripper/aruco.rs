@@ -168,6 +168,18 @@ fn dictionary(name: &str) -> Result<opencv::aruco::PREDEFINED_DICTIONARY_NAME> {
 pub const DICTIONARY_NAMES: &str =
     "4x4_50, 4x4_100, 4x4_250, 4x4_1000, 5x5_50, 5x5_100, 5x5_250, 6x6_50, 6x6_250 or original";
 
+/// Cells across one of the named dictionary's markers: its bits plus the black border on each
+/// side (6 for 4x4, 7 for 5x5 and the original ArUco set); `None` for a name it does not know.
+pub fn marker_cells(name: &str) -> Option<usize> {
+    dictionary(name).ok()?;
+    let lower = name.to_ascii_lowercase();
+    if lower == "original" {
+        return Some(7);
+    }
+    let bits: usize = lower.split('x').next()?.parse().ok()?;
+    Some(bits + 2)
+}
+
 /// How many markers the named dictionary holds (`None` for a name it does not know).
 pub fn dictionary_size(name: &str) -> Option<usize> {
     let lower = name.to_ascii_lowercase();
@@ -263,4 +275,19 @@ impl TagDetector {
 /// Where a bearing lands in the source image (for residuals in pixels).
 pub fn project_bearing(camera: &Camera, b: &Vector3<f64>) -> Option<Point2<f64>> {
     camera.project(&Unit::new_normalize(*b).into_inner())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn cells_count_the_bits_and_the_border() {
+        assert_eq!(marker_cells("4x4_50"), Some(6));
+        assert_eq!(marker_cells("5X5_100"), Some(7));
+        assert_eq!(marker_cells("6x6_250"), Some(8));
+        assert_eq!(marker_cells("original"), Some(7));
+        assert_eq!(marker_cells("7x7_9"), None);
+        assert_eq!(dictionary_size("4x4_250"), Some(250));
+    }
 }

@@ -242,14 +242,26 @@ pub fn square_poses(corners: &[Vector3<f64>; 4], size_m: f64) -> Result<Option<S
 pub struct MarkerFinder {
     camera: Camera,
     detector: TagDetector,
+    /// Cells across the marker (bits and border), for the edge profiles' reach.
+    cells: usize,
 }
 
 impl MarkerFinder {
     /// A finder of marker `id` of the named ArUco dictionary through `camera`.
     pub fn new(camera: Camera, dictionary: &str, id: usize) -> Result<Self> {
+        let detector = TagDetector::new(dictionary, id)?;
+        let cells =
+            crate::gripper::aruco::marker_cells(dictionary).ok_or_else(|| BackendError::Input {
+                path: "marker dictionary".into(),
+                message: format!(
+                    "`{dictionary}` is not one KIWI reads: use {}",
+                    crate::gripper::aruco::DICTIONARY_NAMES
+                ),
+            })?;
         Ok(Self {
             camera,
-            detector: TagDetector::new(dictionary, id)?,
+            detector,
+            cells,
         })
     }
 
@@ -358,7 +370,7 @@ impl MarkerFinder {
         let Some(found) = self.detector.detect_grey(&grey, side, side)? else {
             return Ok(None);
         };
-        let corners = edge_corners(&grey, side, &found).unwrap_or(found);
+        let corners = edge_corners(&grey, side, &found, self.cells).unwrap_or(found);
         Ok(Some(corners.map(|p| view.bearing(p.x, p.y))))
     }
 }
@@ -366,9 +378,11 @@ impl MarkerFinder {
 /// Edge samples along each side start and end this far (share of the side) from its corners:
 /// blur rounds a square's corners, never the middle of its edges.
 const EDGE_SPAN: (f64, f64) = (0.2, 0.8);
-/// Half-length of the profile across an edge, as a share of the side: a third of an ArUco
-/// 4x4 cell (a sixth of the side), so the inner end stays on the black border.
-const EDGE_PROFILE_SHARE: f64 = 1.0 / 18.0;
+/// Half-length of the profile across an edge, in cells measured across the edge (the square's
+/// width perpendicular to it over its cells): the grey levels are read half a cell out, in the
+/// middle of the black border and of the white margin, furthest from the next transitions on
+/// both sides (a shorter reach reads inside the edge's own blur, a longer one the data cells').
+const EDGE_PROFILE_CELLS: f64 = 0.5;
 /// Shortest profile half-length (px): room for the blur of the view.
 const MIN_EDGE_PROFILE_PX: f64 = 1.5;
 /// Step along an edge profile (px).
@@ -471,6 +485,7 @@ fn edge_corners(
     grey: &[u8],
     side: usize,
     corners: &[nalgebra::Point2<f64>; 4],
+    cells: usize,
 ) -> Option<[nalgebra::Point2<f64>; 4]> {
     let mut lines = Vec::with_capacity(4);
     for k in 0..4 {
@@ -482,7 +497,10 @@ fn edge_corners(
         }
         let t = along / length;
         let n = nalgebra::Vector2::new(-t.y, t.x);
-        let reach = (EDGE_PROFILE_SHARE * length).max(MIN_EDGE_PROFILE_PX);
+        // The square's width across this edge, at the middle of the opposite edge.
+        let opposite = nalgebra::center(&corners[(k + 2) % 4], &corners[(k + 3) % 4]);
+        let across = (opposite - a).dot(&n).abs();
+        let reach = (EDGE_PROFILE_CELLS * across / cells as f64).max(MIN_EDGE_PROFILE_PX);
         let samples = ((EDGE_SPAN.1 - EDGE_SPAN.0) * length).floor() as usize;
         let points: Vec<nalgebra::Point2<f64>> = (0..=samples)
             .filter_map(|j| {
@@ -645,6 +663,52 @@ mod tests {
                 worst.0 * 1e3,
                 worst.1.to_degrees()
             );
+        }
+    }
+
+    #[test]
+    #[ignore]
+    fn diag_corner_bias_by_incidence() {
+        let unit = SimUnit::x5("H", 5, 960, LensModel::Kb4).unwrap();
+        let camera = unit.lenses[1].camera.clone();
+        let rays = LensRays::new(&camera);
+        let finder = MarkerFinder::new(camera.clone(), "4x4_50", ID).unwrap();
+        let mut k = 0;
+        for tilt in [0.0f64, 0.4, 0.8, 1.0] {
+            for distance in [0.3, 0.45] {
+                let (mut out, mut tang, mut n) = (0.0, 0.0, 0);
+                for (theta, phi, roll) in [
+                    (0.9, 0.3, 0.2),
+                    (0.9, 2.2, 1.9),
+                    (0.8, 4.0, -2.5),
+                    (1.0, 5.0, 0.7),
+                    (0.85, 1.0, 2.9),
+                    (0.95, 3.0, -1.0),
+                ] {
+                    k += 1;
+                    let truth = placed(distance, theta, phi, tilt, roll);
+                    let Some(found) = finder.find(&frame(&rays, &truth, 0.058, k)).unwrap() else {
+                        continue;
+                    };
+                    let corners = marker_corners(0.058)
+                        .map(|m| (truth * nalgebra::Point3::from(m)).coords.normalize());
+                    let c = corners.iter().sum::<Vector3<f64>>().normalize();
+                    for (b, t) in found.iter().zip(&corners) {
+                        let u = (t - c) - t * t.dot(&(t - c));
+                        let u = u.normalize();
+                        let v = t.cross(&u);
+                        out += (b - t).dot(&u);
+                        tang += (b - t).dot(&v);
+                        n += 1;
+                    }
+                }
+                eprintln!(
+                    "tilt {:.1} rad distance {distance}: {n} corners, outward {:.3} mrad, tangential {:.3} mrad",
+                    tilt,
+                    out / n as f64 * 1e3,
+                    tang / n as f64 * 1e3
+                );
+            }
         }
     }
 
