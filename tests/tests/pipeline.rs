@@ -537,10 +537,20 @@ fn a_session_ingested_from_camera_mp4_files_reconstructs_like_the_png_session() 
     let png = shared_run();
     let root = png.parent().unwrap().to_path_buf();
     let source = root.join("session");
-    let mp4_session = root.join("mp4");
+    // KIWI_MP4_INGEST_FRAMES (`utvideo`, `ffv1`, `h264:CRF`) stores the ingested lenses another
+    // way than ingest's default, to separate the camera's own compression from ingest's.
+    let frames = std::env::var("KIWI_MP4_INGEST_FRAMES").ok();
+    let output = frames
+        .as_deref()
+        .map_or(IngestOptions::default().output, |f| {
+            kiwi_backend::ingest::LensOutput::Video(kiwi_core::video::VideoCodec::parse(f).unwrap())
+        });
+    let tag = frames.as_deref().unwrap_or("default").replace(':', "-");
+    let mp4_session = root.join(format!("mp4-{tag}"));
+    let ran = root.join(format!("mp4-{tag}-ran"));
     let lock = std::fs::File::create(root.join(".mp4-lock")).unwrap();
     lock.lock().unwrap();
-    if !root.join("mp4-ran").is_file() {
+    if !ran.is_file() {
         let _ = std::fs::remove_dir_all(&mp4_session);
         std::fs::create_dir_all(&mp4_session).unwrap();
         std::fs::copy(
@@ -553,6 +563,7 @@ fn a_session_ingested_from_camera_mp4_files_reconstructs_like_the_png_session() 
         let toml = mp4_session.join("session.toml");
         let options = IngestOptions {
             resolution: 480,
+            output,
             ..IngestOptions::default()
         };
         for episode in ["ep000", "ep001", "ep002", "ep003"] {
@@ -587,7 +598,7 @@ fn a_session_ingested_from_camera_mp4_files_reconstructs_like_the_png_session() 
             started.elapsed().as_secs_f64(),
             report.counts
         );
-        std::fs::write(root.join("mp4-ran"), b"ok").unwrap();
+        std::fs::write(&ran, b"ok").unwrap();
     }
     lock.unlock().unwrap();
 

@@ -667,52 +667,6 @@ mod tests {
     }
 
     #[test]
-    #[ignore]
-    fn diag_corner_bias_by_incidence() {
-        let unit = SimUnit::x5("H", 5, 960, LensModel::Kb4).unwrap();
-        let camera = unit.lenses[1].camera.clone();
-        let rays = LensRays::new(&camera);
-        let finder = MarkerFinder::new(camera.clone(), "4x4_50", ID).unwrap();
-        let mut k = 0;
-        for tilt in [0.0f64, 0.4, 0.8, 1.0] {
-            for distance in [0.3, 0.45] {
-                let (mut out, mut tang, mut n) = (0.0, 0.0, 0);
-                for (theta, phi, roll) in [
-                    (0.9, 0.3, 0.2),
-                    (0.9, 2.2, 1.9),
-                    (0.8, 4.0, -2.5),
-                    (1.0, 5.0, 0.7),
-                    (0.85, 1.0, 2.9),
-                    (0.95, 3.0, -1.0),
-                ] {
-                    k += 1;
-                    let truth = placed(distance, theta, phi, tilt, roll);
-                    let Some(found) = finder.find(&frame(&rays, &truth, 0.058, k)).unwrap() else {
-                        continue;
-                    };
-                    let corners = marker_corners(0.058)
-                        .map(|m| (truth * nalgebra::Point3::from(m)).coords.normalize());
-                    let c = corners.iter().sum::<Vector3<f64>>().normalize();
-                    for (b, t) in found.iter().zip(&corners) {
-                        let u = (t - c) - t * t.dot(&(t - c));
-                        let u = u.normalize();
-                        let v = t.cross(&u);
-                        out += (b - t).dot(&u);
-                        tang += (b - t).dot(&v);
-                        n += 1;
-                    }
-                }
-                eprintln!(
-                    "tilt {:.1} rad distance {distance}: {n} corners, outward {:.3} mrad, tangential {:.3} mrad",
-                    tilt,
-                    out / n as f64 * 1e3,
-                    tang / n as f64 * 1e3
-                );
-            }
-        }
-    }
-
-    #[test]
     fn the_row_fraction_is_the_marker_centre_row() {
         let unit = SimUnit::x5("H", 5, 321, LensModel::Kb4).unwrap();
         let camera = unit.lenses[1].camera.clone();
