@@ -35,11 +35,18 @@ use kiwi_fixtures::session::{
 /// The agreement between the marker-referenced and the truth-based errors (m).
 const MAX_DISAGREEMENT_M: f64 = 0.001;
 
-/// The truth pose at camera time `t` (linear between the frames' truth rows).
+/// The pose at `t` of time-ordered `(t, pose)` rows (linear between the two around it).
+fn pose_at<T>(rows: &[T], t: f64, row: impl Fn(&T) -> (f64, &Pose)) -> Pose {
+    let k = rows
+        .partition_point(|r| row(r).0 <= t)
+        .clamp(1, rows.len() - 1);
+    let ((ta, a), (tb, b)) = (row(&rows[k - 1]), row(&rows[k]));
+    interpolate_pose(a, b, ((t - ta) / (tb - ta)).clamp(0.0, 1.0))
+}
+
+/// The truth pose at camera time `t`.
 fn truth_at(rows: &[TruthRow], t: f64) -> Pose {
-    let k = rows.partition_point(|r| r.t <= t).clamp(1, rows.len() - 1);
-    let (a, b) = (&rows[k - 1], &rows[k]);
-    interpolate_pose(&a.pose, &b.pose, ((t - a.t) / (b.t - a.t)).clamp(0.0, 1.0))
+    pose_at(rows, t, |r| (r.t, &r.pose))
 }
 
 /// KIWI's stand-in: `scene_from_world` times the truth, displaced by a smooth error that wanders
@@ -69,13 +76,9 @@ fn published(
         .collect()
 }
 
-/// The published pose at `t` (linear between its rows).
+/// The published pose at `t`.
 fn published_at(poses: &[(f64, Pose)], t: f64) -> Pose {
-    let k = poses
-        .partition_point(|r| r.0 <= t)
-        .clamp(1, poses.len() - 1);
-    let (a, b) = (&poses[k - 1], &poses[k]);
-    interpolate_pose(&a.1, &b.1, ((t - a.0) / (b.0 - a.0)).clamp(0.0, 1.0))
+    pose_at(poses, t, |r| (r.0, &r.1))
 }
 
 fn write_published(path: &Path, poses: &[(f64, Pose)]) {
@@ -198,7 +201,10 @@ fn marker_errors_agree_with_the_truth_within_a_millimetre() {
         &|_, _, _| {},
     )
     .unwrap();
-    print!("{}", kiwi_backend::evaluate::markers::table(&evaluation));
+    let table = kiwi_backend::evaluate::markers::table(&evaluation);
+    print!("{table}");
+    // On positions, the table says where the left-fitted figure's rotation comes from.
+    assert!(table.contains("--align poses"), "{table}");
     assert!(evaluation.skipped.is_empty(), "{:?}", evaluation.skipped);
     assert_eq!(evaluation.wrists.len(), 2);
 

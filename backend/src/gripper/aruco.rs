@@ -168,18 +168,6 @@ fn dictionary(name: &str) -> Result<opencv::aruco::PREDEFINED_DICTIONARY_NAME> {
 pub const DICTIONARY_NAMES: &str =
     "4x4_50, 4x4_100, 4x4_250, 4x4_1000, 5x5_50, 5x5_100, 5x5_250, 6x6_50, 6x6_250 or original";
 
-/// Cells across one of the named dictionary's markers: its bits plus the black border on each
-/// side (6 for 4x4, 7 for 5x5 and the original ArUco set); `None` for a name it does not know.
-pub fn marker_cells(name: &str) -> Option<usize> {
-    dictionary(name).ok()?;
-    let lower = name.to_ascii_lowercase();
-    if lower == "original" {
-        return Some(7);
-    }
-    let bits: usize = lower.split('x').next()?.parse().ok()?;
-    Some(bits + 2)
-}
-
 /// How many markers the named dictionary holds (`None` for a name it does not know).
 pub fn dictionary_size(name: &str) -> Option<usize> {
     let lower = name.to_ascii_lowercase();
@@ -206,6 +194,18 @@ pub struct TagDetector {
 }
 
 impl TagDetector {
+    /// Cells across one of the dictionary's markers: its bits plus the black border on each
+    /// side (6 for 4x4, 7 for 5x5 and the original ArUco set, 8 for 6x6).
+    pub fn marker_cells(&self) -> usize {
+        use opencv::aruco::PREDEFINED_DICTIONARY_NAME as D;
+        match self.dict {
+            D::DICT_4X4_50 | D::DICT_4X4_100 | D::DICT_4X4_250 | D::DICT_4X4_1000 => 6,
+            D::DICT_6X6_50 | D::DICT_6X6_100 | D::DICT_6X6_250 | D::DICT_6X6_1000 => 8,
+            D::DICT_7X7_50 | D::DICT_7X7_100 | D::DICT_7X7_250 | D::DICT_7X7_1000 => 9,
+            _ => 7,
+        }
+    }
+
     /// A detector of tag `id` of the named dictionary.
     pub fn new(dictionary_name: &str, id: usize) -> Result<Self> {
         Ok(Self {
@@ -283,11 +283,10 @@ mod tests {
 
     #[test]
     fn cells_count_the_bits_and_the_border() {
-        assert_eq!(marker_cells("4x4_50"), Some(6));
-        assert_eq!(marker_cells("5X5_100"), Some(7));
-        assert_eq!(marker_cells("6x6_250"), Some(8));
-        assert_eq!(marker_cells("original"), Some(7));
-        assert_eq!(marker_cells("7x7_9"), None);
-        assert_eq!(dictionary_size("4x4_250"), Some(250));
+        let cells = |name: &str| TagDetector::new(name, 0).unwrap().marker_cells();
+        assert_eq!(cells("4x4_50"), 6);
+        assert_eq!(cells("5X5_100"), 7);
+        assert_eq!(cells("6x6_250"), 8);
+        assert_eq!(cells("original"), 7);
     }
 }

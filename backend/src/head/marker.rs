@@ -250,14 +250,7 @@ impl MarkerFinder {
     /// A finder of marker `id` of the named ArUco dictionary through `camera`.
     pub fn new(camera: Camera, dictionary: &str, id: usize) -> Result<Self> {
         let detector = TagDetector::new(dictionary, id)?;
-        let cells =
-            crate::gripper::aruco::marker_cells(dictionary).ok_or_else(|| BackendError::Input {
-                path: "marker dictionary".into(),
-                message: format!(
-                    "`{dictionary}` is not one KIWI reads: use {}",
-                    crate::gripper::aruco::DICTIONARY_NAMES
-                ),
-            })?;
+        let cells = detector.marker_cells();
         Ok(Self {
             camera,
             detector,
