@@ -19,7 +19,8 @@
 //! attempt), `KIWI_RELOC_MAP_CANDIDATES` (look-alike landmarks per keypoint of the whole-map
 //! attempt; 0 turns it off), `KIWI_RELOC_MAP_ONLY=1` (build and check the maps, no query),
 //! `KIWI_RELOC_SERVE_UNTRUSTED=1` (localize even in a map its own check refused, to see what
-//! it would give).
+//! it would give), `KIWI_RELOC_MAP_ATTEMPTS` (whole-map attempts per lost run),
+//! `KIWI_RELOC_FRAMES=1` (every query frame's status, inliers and full reason).
 
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
@@ -123,6 +124,10 @@ fn main() {
     if let Ok(k) = std::env::var("KIWI_RELOC_MAP_CANDIDATES") {
         options.relocalization_map_candidates = k.parse().unwrap();
     }
+    if let Ok(k) = std::env::var("KIWI_RELOC_MAP_ATTEMPTS") {
+        options.relocalization_map_attempts = k.parse().unwrap();
+    }
+    let print_frames = env("KIWI_RELOC_FRAMES", "0") == "1";
     for spec in rooms.split(',') {
         let (kind, seed) = spec.split_once(':').unwrap();
         let (kind, seed) = (room_kind(kind), seed.parse::<u64>().unwrap());
@@ -245,6 +250,18 @@ fn main() {
         );
         for (r, n) in reasons.iter().take(6) {
             println!("[{tag}]   lost {n}: {r}");
+        }
+        if print_frames {
+            for r in &results {
+                println!(
+                    "[{tag}] frame {} t {:.3} {} {} inliers {}",
+                    r.frame,
+                    r.t,
+                    r.status.name(),
+                    r.inliers,
+                    r.reason
+                );
+            }
         }
         if diagnose > 0 {
             let scene = Scene::new(seed, SceneOptions::room(kind));

@@ -141,6 +141,9 @@ pub struct LocalizerOptions {
     /// candidate windows are tried until a pose is found (a view the map never saw would pay
     /// the whole-map matching on every attempt).
     pub relocalization_map_attempts: usize,
+    /// After `relocalization_map_attempts`, one attempt in this many is still a whole-map one
+    /// (a repeated-texture room may need it long into a lost run; 0 or 1: every attempt).
+    pub relocalization_map_interval: usize,
     /// See `min_view_support`.
     pub support_grid: u32,
     /// See `min_view_support`.
@@ -238,6 +241,9 @@ impl Default for LocalizerOptions {
             // its first whole-map attempt; later attempts of a long lost run rarely succeed
             // where the first ones failed, and each costs ~4 window attempts.
             relocalization_map_attempts: 10,
+            // One whole-map attempt costs about four window attempts: past the first ten, at
+            // most half of a long lost run's relocalization time goes to the whole map.
+            relocalization_map_interval: 4,
             // 8 × 8 cells of 120 px at 960 px: a photo or a tile panel covers a few of them.
             support_grid: 8,
             // A cell with fewer predicted landmarks is too thin to expect an inlier in.
@@ -457,6 +463,8 @@ pub struct Localizer {
     refused: Option<String>,
     /// Whole-map attempts in the current run of frames without a pose.
     map_attempts_in_run: usize,
+    /// Window-only attempts since the last whole-map attempt of the current run.
+    window_attempts_since_map: usize,
     /// Train descriptors of every landmark and keyframe view with their landmarks, built at the
     /// first whole-map attempt (the map never changes).
     whole_map_train: std::cell::OnceCell<(Vec<Descriptor>, Vec<u32>)>,
@@ -571,6 +579,7 @@ impl Localizer {
                     )
                 }),
             map_attempts_in_run: 0,
+            window_attempts_since_map: 0,
             whole_map_train: std::cell::OnceCell::new(),
         })
     }
@@ -936,7 +945,9 @@ impl Localizer {
             None => self.orb.extract(image, Some(&self.mask), &self.camera)?,
         };
         let started = std::time::Instant::now();
-        let whole_map = self.map_attempts_in_run < self.options.relocalization_map_attempts;
+        let whole_map = self.map_attempts_in_run < self.options.relocalization_map_attempts
+            || self.window_attempts_since_map + 1
+                >= self.options.relocalization_map_interval.max(1);
         let relocalized = self.relocalize(frame, &feats, whole_map, None);
         self.attempts += 1;
         self.attempt_seconds += started.elapsed().as_secs_f64();
@@ -948,8 +959,12 @@ impl Localizer {
         if relocalized.is_ok() {
             self.lost_since = None;
             self.map_attempts_in_run = 0;
+            self.window_attempts_since_map = 0;
         } else if whole_map {
             self.map_attempts_in_run += 1;
+            self.window_attempts_since_map = 0;
+        } else {
+            self.window_attempts_since_map += 1;
         }
         match relocalized {
             Ok(e) => Ok(self.finish(
