@@ -20,7 +20,8 @@
 //! attempt; 0 turns it off), `KIWI_RELOC_MAP_ONLY=1` (build and check the maps, no query),
 //! `KIWI_RELOC_SERVE_UNTRUSTED=1` (localize even in a map its own check refused, to see what
 //! it would give), `KIWI_RELOC_MAP_ATTEMPTS` (whole-map attempts per lost run),
-//! `KIWI_RELOC_FRAMES=1` (every query frame's status, inliers and full reason).
+//! `KIWI_RELOC_FRAMES=1` (every query frame's status, inliers and full reason),
+//! `KIWI_RELOC_GUIDED_VIEWS=0` (guided matching against representative descriptors only).
 
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
@@ -116,6 +117,7 @@ fn main() {
         options.min_view_support = 0.0;
         options.relocalization_map_candidates = 0;
         options.relocalization_guided_keyframes = options.guided_keyframes;
+        options.guided_views = false;
         println!("baseline: {options:?}");
     }
     if env("KIWI_RELOC_SERVE_UNTRUSTED", "0") == "1" {
@@ -123,6 +125,9 @@ fn main() {
     }
     if let Ok(k) = std::env::var("KIWI_RELOC_MAP_CANDIDATES") {
         options.relocalization_map_candidates = k.parse().unwrap();
+    }
+    if env("KIWI_RELOC_GUIDED_VIEWS", "1") == "0" {
+        options.guided_views = false;
     }
     if let Ok(k) = std::env::var("KIWI_RELOC_MAP_ATTEMPTS") {
         options.relocalization_map_attempts = k.parse().unwrap();

@@ -179,6 +179,9 @@ pub struct LocalizerOptions {
     pub guided_radius_px: f64,
     /// Keyframes nearest to the pose whose landmarks guided matching projects.
     pub guided_keyframes: usize,
+    /// Guided matching compares each keypoint with every keyframe view of a landmark, not only
+    /// its representative descriptor.
+    pub guided_views: bool,
     /// Candidate keyframes tried by relocalization.
     pub relocalization_candidates: usize,
     /// Neighbouring keyframes (each side) whose landmarks join a candidate's.
@@ -273,6 +276,9 @@ impl Default for LocalizerOptions {
             // KLT drift plus pose error over one frame at 120 Hz stays within a few pixels.
             guided_radius_px: 6.0,
             guided_keyframes: 4,
+            // A landmark seen from 40-60° away (a revisit) looks like its nearest keyframe
+            // view, not like the medoid of all of them.
+            guided_views: true,
             relocalization_candidates: 3,
             relocalization_neighbours: 2,
             // Two failures in a row: the view is not in the map (another wrist's view, a part
@@ -447,6 +453,9 @@ pub struct Localizer {
     /// landmark's views differ a lot across a fisheye image — distortion, scale, rotation — and
     /// one medoid matches a view from elsewhere poorly).
     keyframe_views: Vec<Vec<(Descriptor, u32)>>,
+    /// Per landmark, the descriptors of its keyframe views (guided matching takes the nearest
+    /// of them and the representative: a view from elsewhere resembles some keyframe's view).
+    landmark_views: Vec<Vec<Descriptor>>,
     keyframe_landmarks: Vec<Vec<u32>>,
     keyframe_centres: Vec<Vector3<f64>>,
     /// Each keyframe's optical axis in the map.
@@ -542,6 +551,14 @@ impl Localizer {
         let threshold_rad = options.threshold_px * pixel_rad;
         let map_depth = median_keyframe_depth(&map)
             .ok_or_else(|| vision_err("the map's keyframes see no landmark".into()))?;
+        let mut landmark_views: Vec<Vec<Descriptor>> = vec![Vec::new(); map.landmarks.len()];
+        if options.guided_views {
+            for (d, l) in keyframe_views.iter().flatten() {
+                if let Some(views) = landmark_views.get_mut(*l as usize) {
+                    views.push(*d);
+                }
+            }
+        }
         Ok(Self {
             orb: OrbExtractor::new(&options.orb)?,
             camera,
@@ -559,6 +576,7 @@ impl Localizer {
                 .collect(),
             descriptors: map.landmarks.iter().map(|l| l.descriptor).collect(),
             keyframe_views,
+            landmark_views,
             keyframe_landmarks,
             keyframe_centres,
             keyframe_axes,
@@ -828,9 +846,13 @@ impl Localizer {
             };
             grid.within(&px, r, &features.keypoints, &mut near);
             let d = &self.descriptors[l as usize];
+            let views = &self.landmark_views[l as usize];
             let (mut best, mut second) = ((u32::MAX, usize::MAX), u32::MAX);
             for &k in &near {
-                let dist = d.distance(&features.descriptors[k]);
+                let q = &features.descriptors[k];
+                let dist = views
+                    .iter()
+                    .fold(d.distance(q), |m, v| m.min(v.distance(q)));
                 if dist < best.0 {
                     second = best.0;
                     best = (dist, k);
