@@ -155,8 +155,7 @@ fn dictionary(name: &str) -> Result<opencv::aruco::PREDEFINED_DICTIONARY_NAME> {
             return Err(BackendError::Input {
                 path: "tool definition".into(),
                 message: format!(
-                    "marker.dictionary `{other}` is not supported: use 4x4_50, 4x4_100, 4x4_250, \
-                     4x4_1000, 5x5_50, 5x5_100, 5x5_250, 6x6_50, 6x6_250 or original"
+                    "marker.dictionary `{other}` is not supported: use {DICTIONARY_NAMES}"
                 ),
             });
         }
@@ -201,7 +200,7 @@ impl TagDetector {
         match self.dict {
             D::DICT_4X4_50 | D::DICT_4X4_100 | D::DICT_4X4_250 | D::DICT_4X4_1000 => 6,
             D::DICT_6X6_50 | D::DICT_6X6_100 | D::DICT_6X6_250 | D::DICT_6X6_1000 => 8,
-            D::DICT_7X7_50 | D::DICT_7X7_100 | D::DICT_7X7_250 | D::DICT_7X7_1000 => 9,
+            // 5x5 and the original set: the only others `dictionary` gives.
             _ => 7,
         }
     }
@@ -288,5 +287,6 @@ mod tests {
         assert_eq!(cells("5X5_100"), 7);
         assert_eq!(cells("6x6_250"), 8);
         assert_eq!(cells("original"), 7);
+        assert_eq!(dictionary_size("4x4_250"), Some(250));
     }
 }

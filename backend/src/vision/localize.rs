@@ -137,9 +137,9 @@ pub struct LocalizerOptions {
     pub relocalization_map_candidates: usize,
     /// RANSAC iterations of the whole-map hypothesis (its share of right matches is low).
     pub relocalization_map_iterations: usize,
-    /// Whole-map attempts per run of frames without a pose: after this many failed, only the
-    /// candidate windows are tried until a pose is found (a view the map never saw would pay
-    /// the whole-map matching on every attempt).
+    /// Whole-map attempts per run of frames without a pose: after this many failed, only one
+    /// attempt in `relocalization_map_interval` is a whole-map one until a pose is found (a
+    /// view the map never saw would pay the whole-map matching on every attempt).
     pub relocalization_map_attempts: usize,
     /// After `relocalization_map_attempts`, one attempt in this many is still a whole-map one
     /// (a repeated-texture room may need it long into a lost run; 0 or 1: every attempt).
@@ -241,8 +241,7 @@ impl Default for LocalizerOptions {
             // far sooner once a hypothesis with many inliers is found.
             relocalization_map_iterations: 10_000,
             // A third of the eager first second at 30 Hz: the kitchen's revisit found the map on
-            // its first whole-map attempt; later attempts of a long lost run rarely succeed
-            // where the first ones failed, and each costs ~4 window attempts.
+            // its first whole-map attempt, and each costs ~4 window attempts.
             relocalization_map_attempts: 10,
             // One whole-map attempt costs about four window attempts: past the first ten, at
             // most half of a long lost run's relocalization time goes to the whole map.
