@@ -21,7 +21,9 @@
 //! `KIWI_RELOC_SERVE_UNTRUSTED=1` (localize even in a map its own check refused, to see what
 //! it would give), `KIWI_RELOC_MAP_ATTEMPTS` (whole-map attempts per lost run),
 //! `KIWI_RELOC_FRAMES=1` (every query frame's status, inliers and full reason),
-//! `KIWI_RELOC_GUIDED_VIEWS=0` (guided matching against representative descriptors only).
+//! `KIWI_RELOC_GUIDED_VIEWS=0` (guided matching against representative descriptors only),
+//! `KIWI_RELOC_TOPUP_BY_VIEW=0` (tracking's top-up from the keyframes nearest in centre),
+//! `KIWI_RELOC_DENSIFY_UNCERTAIN=0` (a poorly constrained tracked pose is refused at once).
 
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
@@ -118,6 +120,8 @@ fn main() {
         options.relocalization_map_candidates = 0;
         options.relocalization_guided_keyframes = options.guided_keyframes;
         options.guided_views = false;
+        options.topup_by_view = false;
+        options.densify_uncertain = false;
         println!("baseline: {options:?}");
     }
     if env("KIWI_RELOC_SERVE_UNTRUSTED", "0") == "1" {
@@ -128,6 +132,12 @@ fn main() {
     }
     if env("KIWI_RELOC_GUIDED_VIEWS", "1") == "0" {
         options.guided_views = false;
+    }
+    if env("KIWI_RELOC_TOPUP_BY_VIEW", "1") == "0" {
+        options.topup_by_view = false;
+    }
+    if env("KIWI_RELOC_DENSIFY_UNCERTAIN", "1") == "0" {
+        options.densify_uncertain = false;
     }
     if let Ok(k) = std::env::var("KIWI_RELOC_MAP_ATTEMPTS") {
         options.relocalization_map_attempts = k.parse().unwrap();
@@ -258,8 +268,13 @@ fn main() {
         }
         if print_frames {
             for r in &results {
+                let error = r.map_from_cam.map_or(String::new(), |p| {
+                    let d = alignment.world_from_cam(&p).translation.vector
+                        - common::reloc::pose_at(&qtruth, r.t).translation.vector;
+                    format!("error {:.1} mm ", d.norm() * 1e3)
+                });
                 println!(
-                    "[{tag}] frame {} t {:.3} {} {} inliers {}",
+                    "[{tag}] frame {} t {:.3} {} {} inliers {error}{}",
                     r.frame,
                     r.t,
                     r.status.name(),

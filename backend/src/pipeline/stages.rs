@@ -64,7 +64,7 @@ pub fn version(kind: &StageKind) -> &'static str {
         StageKind::Sync { .. } => "sync-2",
         StageKind::Map { .. } => "map-2",
         StageKind::Tool { .. } => "tool-1",
-        StageKind::Localize { .. } => "localize-4",
+        StageKind::Localize { .. } => "localize-5",
         StageKind::Metric { .. } => "metric-1",
         StageKind::Placement { .. } => "placement-1",
         StageKind::Observations { .. } => "observations-2",

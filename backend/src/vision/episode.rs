@@ -517,18 +517,20 @@ fn stream_localizer(
     )
 }
 
-/// Frames after a lost run that the backward pass starts from: relocalizing a frame or two
-/// after the run gives the backward tracking its motion prior.
+/// Frames after a lost run that the backward pass starts from when the frame after the run
+/// cannot be localized from its own pose again: relocalizing a frame or two after the run gives
+/// the backward tracking its motion prior.
 const BACKFILL_LEAD: usize = 2;
 
 /// Retry lost frames backwards from the localized frame that follows them: a fresh localizer
-/// relocalizes from just after the run and tracks back into it with the motion prior (a stream
-/// that starts, or resumes, where relocalization alone fails is often trackable from the other
-/// side). A frame lost again keeps its forward result and the pass goes on (the localizer
-/// relocalizes, at its own reduced rate after repeated failures); the same acceptance rules
-/// apply, so a filled frame is as trustworthy as any other. Sequential and seeded by frame
-/// index, so the result stays deterministic. Returns its relocalization attempts and their
-/// wall time (s).
+/// starts from that frame's pose ([`Localizer::process_from`]; or relocalizes just after the
+/// run when the frame does not localize from it again) and tracks back into the run with the
+/// motion prior (a stream that starts, or resumes, where relocalization alone fails is often
+/// trackable from the other side). A frame lost again keeps its forward result and the pass
+/// goes on (the localizer relocalizes, at its own reduced rate after repeated failures); the
+/// same acceptance rules apply, so a filled frame is as trustworthy as any other. Sequential
+/// and seeded by frame index, so the result stays deterministic. Returns its relocalization
+/// attempts and their wall time (s).
 fn backfill(
     map: &VisualMap,
     stream: &LensStream,
@@ -549,7 +551,19 @@ fn backfill(
             continue;
         }
         let mut localizer = stream_localizer(map, stream, options)?;
-        let top = (b + BACKFILL_LEAD).min(n - 1);
+        // From frame b's own pose when the frame localizes from it again; else relocalize a
+        // little after it.
+        let seeded = match results[b].map_from_cam {
+            Some(p) => localizer
+                .process_from(b as u32, results[b].t, &stream.load(b)?, &p.inverse())?
+                .is_some(),
+            None => false,
+        };
+        let top = if seeded {
+            b - 1
+        } else {
+            (b + BACKFILL_LEAD).min(n - 1)
+        };
         for j in (a..=top).rev() {
             let image = stream.load(j)?;
             let r = localizer.process(j as u32, stream.frames[j].t, &image)?;

@@ -182,6 +182,13 @@ pub struct LocalizerOptions {
     /// Guided matching compares each keypoint with every keyframe view of a landmark, not only
     /// its representative descriptor.
     pub guided_views: bool,
+    /// Tracking's top-up projects the landmarks of the keyframes that view the pose's
+    /// surroundings best (centre and viewing direction), not of those nearest in centre only.
+    pub topup_by_view: bool,
+    /// A tracked pose whose position is poorly constrained is matched again over the whole
+    /// frame around itself, against the landmarks of the `relocalization_guided_keyframes`
+    /// keyframes viewing it best, before it is refused.
+    pub densify_uncertain: bool,
     /// Candidate keyframes tried by relocalization.
     pub relocalization_candidates: usize,
     /// Neighbouring keyframes (each side) whose landmarks join a candidate's.
@@ -278,6 +285,12 @@ impl Default for LocalizerOptions {
             // A landmark seen from 40-60° away (a revisit) looks like its nearest keyframe
             // view, not like the medoid of all of them.
             guided_views: true,
+            // A revisit looks elsewhere than the nearest keyframes did: their landmarks are
+            // mostly behind the camera or far off-axis.
+            topup_by_view: true,
+            // The top-up matches only in sparse cells and against four keyframes; a frame at
+            // the uncertainty limit has more of the map in view than that.
+            densify_uncertain: true,
             relocalization_candidates: 3,
             relocalization_neighbours: 2,
             // Two failures in a row: the view is not in the map (another wrist's view, a part
@@ -609,6 +622,50 @@ impl Localizer {
     /// Relocalization attempts so far and their total wall time (s).
     pub fn relocalization_cost(&self) -> (usize, f64) {
         (self.attempts, self.attempt_seconds)
+    }
+
+    /// Localize a frame from a pose known for a neighbouring frame (instead of relocalizing:
+    /// no place recognition, no descriptor matching against the map): guided matching over the
+    /// whole frame around `prior` against the landmarks of the keyframes that view it best,
+    /// judged by the tracking rules. `None` when that gives no accepted pose (the frame is then
+    /// for [`Self::process`]). The pose is carried to the next frame as after tracking.
+    pub fn process_from(
+        &mut self,
+        frame: u32,
+        t: f64,
+        image: &GrayImage,
+        prior: &Pose,
+    ) -> Result<Option<FrameLocalization>> {
+        if self.refused.is_some() {
+            return Ok(None);
+        }
+        let pyramid = KltPyramid::new(image, &self.options.klt)?;
+        let Some(e) = self.guided_estimate(frame, image, prior, Vec::new(), &mut None)? else {
+            return Ok(None);
+        };
+        if self.accept(&e, self.options.min_inliers).is_err() {
+            return Ok(None);
+        }
+        Ok(Some(self.finish(
+            frame,
+            t,
+            &e,
+            pyramid,
+            LocalizationStatus::Tracked,
+            usize::MAX,
+        )))
+    }
+
+    /// How many inliers a pose for this frame keeps when the frame is matched around it (as
+    /// [`Self::process_from`]; 0 when no pose comes of it): two poses of one moment that
+    /// disagree are compared by this. No state change.
+    pub fn pose_support(&mut self, frame: u32, image: &GrayImage, pose: &Pose) -> Result<usize> {
+        if self.refused.is_some() {
+            return Ok(0);
+        }
+        Ok(self
+            .guided_estimate(frame, image, pose, Vec::new(), &mut None)?
+            .map_or(0, |e| e.inliers.len()))
     }
 
     /// Forget the motion prior (the next frame relocalizes).
@@ -1113,11 +1170,13 @@ impl Localizer {
             Err(_) => state.cam_from_map,
         };
         let tracked: BTreeSet<u32> = corr.iter().map(|c| c.landmark).collect();
-        let candidates: Vec<u32> = self
-            .nearby_landmarks(&pose, self.options.guided_keyframes)
-            .into_iter()
-            .filter(|l| !tracked.contains(l))
-            .collect();
+        let mut near = self.nearby_landmarks(&pose, self.options.guided_keyframes);
+        if self.options.topup_by_view {
+            near.extend(self.viewing_landmarks(&pose, self.options.guided_keyframes));
+            near.sort_unstable();
+            near.dedup();
+        }
+        let candidates: Vec<u32> = near.into_iter().filter(|l| !tracked.contains(l)).collect();
         let feats = match &first {
             // With a pose, ORB runs only where landmarks wait to be matched and few are held.
             Ok(e) => {
@@ -1129,9 +1188,11 @@ impl Localizer {
             Err(_) => self.orb.extract(image, Some(&self.mask), &self.camera)?,
         };
         let grid = KeypointGrid::new(&feats.keypoints, self.options.guided_radius_px);
+        let carried = corr.len();
         let mut all = corr;
         all.extend(self.guided_matches(&pose, &candidates, &feats, &grid));
-        if first.is_err() {
+        let whole_frame = first.is_err();
+        if whole_frame {
             *features = Some(feats);
         }
         let e = match self.estimate(&all, &self.ransac(frame, 2, ransac.min_inliers)) {
@@ -1141,10 +1202,75 @@ impl Localizer {
         if let Err(why) = self.accept_support(&e, ransac.min_inliers) {
             return Ok(Err(TrackFailure::Rejected(why, e.inliers.len())));
         }
-        match self.check_position(&e) {
-            Ok(()) => Ok(Ok((e, usize::MAX))),
-            Err(why) => Ok(Err(TrackFailure::Uncertain(e, why))),
+        let why = match self.check_position(&e) {
+            Ok(()) => return Ok(Ok((e, usize::MAX))),
+            Err(why) => why,
+        };
+        if self.options.densify_uncertain {
+            all.truncate(carried);
+            if let Some(dense) =
+                self.densify_uncertain(frame, image, &e, all, features, ransac.min_inliers)?
+            {
+                return Ok(Ok((dense, usize::MAX)));
+            }
         }
+        Ok(Err(TrackFailure::Uncertain(e, why)))
+    }
+
+    /// Whole-frame guided matching around `pose` against the landmarks of the
+    /// `relocalization_guided_keyframes` keyframes that view it best, added to `carried` (KLT
+    /// correspondences, whose landmarks are not matched again), and the estimate of them all
+    /// (`None` when RANSAC finds none). The whole frame's features are extracted into
+    /// `features` unless already there.
+    fn guided_estimate(
+        &mut self,
+        frame: u32,
+        image: &GrayImage,
+        pose: &Pose,
+        carried: Vec<Correspondence>,
+        features: &mut Option<FrameFeatures>,
+    ) -> Result<Option<Estimate>> {
+        if features.is_none() {
+            *features = Some(self.orb.extract(image, Some(&self.mask), &self.camera)?);
+        }
+        let Some(feats) = features.as_ref() else {
+            return Ok(None);
+        };
+        let grid = KeypointGrid::new(&feats.keypoints, self.options.guided_radius_px);
+        let tracked: BTreeSet<u32> = carried.iter().map(|c| c.landmark).collect();
+        let candidates: Vec<u32> = self
+            .viewing_landmarks(pose, self.options.relocalization_guided_keyframes)
+            .into_iter()
+            .filter(|l| !tracked.contains(l))
+            .collect();
+        let mut all = carried;
+        all.extend(self.guided_matches(pose, &candidates, feats, &grid));
+        Ok(self
+            .estimate(&all, &self.ransac(frame, 3, self.options.min_inliers))
+            .ok())
+    }
+
+    /// A tracked pose whose position is poorly constrained, matched again around itself over
+    /// the whole frame (`guided_estimate`, as relocalization densifies a hypothesis): the
+    /// accepted estimate, or `None` when the position stays poorly constrained. `carried` are
+    /// the frame's KLT correspondences; the whole frame's features land in `features`.
+    fn densify_uncertain(
+        &mut self,
+        frame: u32,
+        image: &GrayImage,
+        e: &Estimate,
+        carried: Vec<Correspondence>,
+        features: &mut Option<FrameFeatures>,
+        min_inliers: usize,
+    ) -> Result<Option<Estimate>> {
+        let Some(dense) = self.guided_estimate(frame, image, &e.cam_from_map, carried, features)?
+        else {
+            return Ok(None);
+        };
+        let accepted = dense.inliers.len() > e.inliers.len()
+            && self.accept_support(&dense, min_inliers).is_ok()
+            && self.check_position(&dense).is_ok();
+        Ok(accepted.then_some(dense))
     }
 
     /// Pixel rectangles of the top-up grid cells that hold fewer than `cell_min_tracks` of the
