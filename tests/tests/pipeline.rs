@@ -494,19 +494,19 @@ fn bad_input_gives_a_named_cause_and_the_other_episodes_finish() {
 
 /// Camera-like MP4 files of one camera of a simulated episode: every lens as an H.264 4:2:0
 /// track (constant CRF, no B-frames, the recording's frame rate) and the audio as AAC, as a
-/// camera or an exporting app writes them; the IMU beside it as a CSV in SI units.
-fn camera_mp4(episode: &Path, camera: &str, out: &Path) -> (PathBuf, PathBuf) {
+/// camera or an exporting app writes them; the IMU beside it as a CSV in SI units. With
+/// `upscale` > 1 the lenses are coded at that multiple of the simulated size (Lanczos), as a
+/// camera codes its native resolution and KIWI processes a smaller one.
+fn camera_mp4(episode: &Path, camera: &str, out: &Path, upscale: u32) -> (PathBuf, PathBuf) {
     let dir = episode.join(camera);
     let meta = kiwi_core::layout::EpisodeLayout::new(episode)
         .read_meta(camera)
         .unwrap();
     let lenses = meta.lenses;
-    // The simulator's frames are at k / fps from 0: an exact rational rate keeps them there.
-    let rate = if (meta.fps - 29.97).abs() < 1e-6 {
-        "30000/1001".to_string()
-    } else {
-        meta.fps.to_string()
-    };
+    // The simulator's frames are at k / fps from 0 with its decimal rate (29.97, not NTSC's
+    // 30000/1001, which drifts 33 ns a frame from it): the same rate as an exact fraction keeps
+    // the container's frame times on the simulator's.
+    let rate = format!("{}/1000", (meta.fps * 1000.0).round());
     let mp4 = out.join(format!("{camera}.mp4"));
     let mut cmd = std::process::Command::new("ffmpeg");
     cmd.args(["-v", "error", "-y"]);
@@ -517,6 +517,10 @@ fn camera_mp4(episode: &Path, camera: &str, out: &Path) -> (PathBuf, PathBuf) {
     cmd.arg("-i").arg(dir.join("audio.wav"));
     for i in 0..=lenses.len() {
         cmd.args(["-map", &i.to_string()]);
+    }
+    if upscale > 1 {
+        cmd.arg("-vf")
+            .arg(format!("scale=iw*{upscale}:ih*{upscale}:flags=lanczos"));
     }
     cmd.args([
         "-c:v", "libx264", "-crf", "12", "-bf", "0", "-pix_fmt", "yuv420p", "-c:a", "aac", "-b:a",
@@ -545,7 +549,20 @@ fn a_session_ingested_from_camera_mp4_files_reconstructs_like_the_png_session() 
         .map_or(IngestOptions::default().output, |f| {
             kiwi_backend::ingest::LensOutput::Video(kiwi_core::video::VideoCodec::parse(f).unwrap())
         });
-    let tag = frames.as_deref().unwrap_or("default").replace(':', "-");
+    // KIWI_MP4_CAMERA_UPSCALE (default 1) codes the camera files at that multiple of the
+    // processing size, which ingest then resizes back (a camera's native resolution).
+    let upscale: u32 = std::env::var("KIWI_MP4_CAMERA_UPSCALE").map_or(1, |v| {
+        v.parse().expect("KIWI_MP4_CAMERA_UPSCALE: a whole number")
+    });
+    let tag = format!(
+        "{}{}",
+        frames.as_deref().unwrap_or("default").replace(':', "-"),
+        if upscale > 1 {
+            format!("-x{upscale}")
+        } else {
+            String::new()
+        }
+    );
     let mp4_session = root.join(format!("mp4-{tag}"));
     let ran = root.join(format!("mp4-{tag}-ran"));
     let lock = std::fs::File::create(root.join(".mp4-lock")).unwrap();
@@ -573,7 +590,7 @@ fn a_session_ingested_from_camera_mp4_files_reconstructs_like_the_png_session() 
             let inputs: Vec<CameraInput> = ["left", "right", "head"]
                 .iter()
                 .map(|camera| {
-                    let (mp4, imu) = camera_mp4(&ep, camera, &out);
+                    let (mp4, imu) = camera_mp4(&ep, camera, &out, upscale);
                     CameraInput {
                         camera: (*camera).into(),
                         files: vec![mp4],
