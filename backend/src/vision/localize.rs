@@ -640,13 +640,13 @@ impl Localizer {
         if self.refused.is_some() {
             return Ok(None);
         }
-        let pyramid = KltPyramid::new(image, &self.options.klt)?;
         let Some(e) = self.guided_estimate(frame, image, prior, Vec::new(), &mut None)? else {
             return Ok(None);
         };
         if self.accept(&e, self.options.min_inliers).is_err() {
             return Ok(None);
         }
+        let pyramid = KltPyramid::new(image, &self.options.klt)?;
         Ok(Some(self.finish(
             frame,
             t,
@@ -817,10 +817,14 @@ impl Localizer {
     /// in centre (in units of the map's median depth) and in viewing direction (a keyframe
     /// 0.3 m away looking 90° elsewhere shares less than one 0.5 m away looking the same way).
     fn viewing_landmarks(&self, cam_from_map: &Pose, count: usize) -> Vec<u32> {
-        let set: BTreeSet<u32> = self
-            .viewing_order(cam_from_map)
+        let order = self.viewing_order(cam_from_map);
+        self.landmarks_of(&order[..count.min(order.len())])
+    }
+
+    /// The landmarks seen by any of `keyframes`, sorted, each once.
+    fn landmarks_of(&self, keyframes: &[usize]) -> Vec<u32> {
+        let set: BTreeSet<u32> = keyframes
             .iter()
-            .take(count)
             .flat_map(|&k| self.keyframe_landmarks[k].iter().copied())
             .collect();
         set.into_iter().collect()
@@ -846,8 +850,8 @@ impl Localizer {
         order.into_iter().map(|(_, k)| k).collect()
     }
 
-    /// Landmarks seen by the `count` keyframes whose centres are nearest to the pose's centre.
-    fn nearby_landmarks(&self, cam_from_map: &Pose, count: usize) -> Vec<u32> {
+    /// Keyframes ordered by the distance of their centres to the pose's centre.
+    fn nearest_order(&self, cam_from_map: &Pose) -> Vec<usize> {
         let c = cam_from_map.inverse().translation.vector;
         let mut order: Vec<(f64, usize)> = self
             .keyframe_centres
@@ -856,12 +860,7 @@ impl Localizer {
             .map(|(k, x)| ((x - c).norm_squared(), k))
             .collect();
         order.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-        let set: BTreeSet<u32> = order
-            .iter()
-            .take(count)
-            .flat_map(|(_, k)| self.keyframe_landmarks[*k].iter().copied())
-            .collect();
-        set.into_iter().collect()
+        order.into_iter().map(|(_, k)| k).collect()
     }
 
     /// Project `landmarks` with the pose and match each to the best keypoint within the guided
@@ -1159,13 +1158,16 @@ impl Localizer {
             Err(_) => state.cam_from_map,
         };
         let tracked: BTreeSet<u32> = corr.iter().map(|c| c.landmark).collect();
-        let mut near = self.nearby_landmarks(&pose, self.options.guided_keyframes);
+        let k = self.options.guided_keyframes;
+        let mut keyframes: Vec<usize> = self.nearest_order(&pose).into_iter().take(k).collect();
         if self.options.topup_by_view {
-            near.extend(self.viewing_landmarks(&pose, self.options.guided_keyframes));
-            near.sort_unstable();
-            near.dedup();
+            keyframes.extend(self.viewing_order(&pose).into_iter().take(k));
         }
-        let candidates: Vec<u32> = near.into_iter().filter(|l| !tracked.contains(l)).collect();
+        let candidates: Vec<u32> = self
+            .landmarks_of(&keyframes)
+            .into_iter()
+            .filter(|l| !tracked.contains(l))
+            .collect();
         let feats = match &first {
             // With a pose, ORB runs only where landmarks wait to be matched and few are held.
             Ok(e) => {
@@ -1197,7 +1199,7 @@ impl Localizer {
         if self.options.densify_uncertain {
             all.truncate(carried);
             if let Some(dense) =
-                self.densify_uncertain(frame, image, &e, all, features, ransac.min_inliers)?
+                self.rematch_uncertain(frame, image, &e, all, features, ransac.min_inliers)?
             {
                 return Ok(Ok((dense, usize::MAX)));
             }
@@ -1218,11 +1220,9 @@ impl Localizer {
         carried: Vec<Correspondence>,
         features: &mut Option<FrameFeatures>,
     ) -> Result<Option<Estimate>> {
-        if features.is_none() {
-            *features = Some(self.orb.extract(image, Some(&self.mask), &self.camera)?);
-        }
-        let Some(feats) = features.as_ref() else {
-            return Ok(None);
+        let feats = match features {
+            Some(f) => &*f,
+            None => &*features.insert(self.orb.extract(image, Some(&self.mask), &self.camera)?),
         };
         let grid = KeypointGrid::new(&feats.keypoints, self.options.guided_radius_px);
         let tracked: BTreeSet<u32> = carried.iter().map(|c| c.landmark).collect();
@@ -1242,7 +1242,7 @@ impl Localizer {
     /// the whole frame (`guided_estimate`, as relocalization densifies a hypothesis): the
     /// accepted estimate, or `None` when the position stays poorly constrained. `carried` are
     /// the frame's KLT correspondences; the whole frame's features land in `features`.
-    fn densify_uncertain(
+    fn rematch_uncertain(
         &mut self,
         frame: u32,
         image: &GrayImage,
