@@ -112,6 +112,33 @@ pub const DEFAULT_REAR_SIGMA: PoseSigma = PoseSigma {
     position_m: 2e-3,
     rotation_rad: 3.49e-3,
 };
+/// Smallest visual position noise taken from the lenses' disagreement (m): below a millimetre
+/// one frame's localization does not resolve it, and a zero noise would overrule the IMU.
+pub const MIN_VISUAL_SIGMA_POSITION_M: f64 = 1e-3;
+/// Smallest visual rotation noise taken from the lenses' disagreement (rad): 0.05°.
+pub const MIN_VISUAL_SIGMA_ROTATION_RAD: f64 = 8.7e-4;
+
+/// The visual noise of each lens of a wrist from how much its two lenses disagree about the
+/// same rigid body: the placement's RMS residuals (eq. 2) over the mapping episode.
+///
+/// The two lenses localize in maps built the same way from the same kind of images, and their
+/// errors (mostly each map's own distortion, which is correlated over seconds) are independent,
+/// so the disagreement's RMS is √2 times each lens's noise and both get the same share. The
+/// fixed defaults, which trust the front lens twice as much, are for inputs with no placement.
+pub fn visual_sigma_from_disagreement(rms_position_m: f64, rms_rotation_rad: f64) -> PoseSigma {
+    let share = |rms: f64, floor: f64| {
+        if rms.is_finite() {
+            (rms / std::f64::consts::SQRT_2).max(floor)
+        } else {
+            floor
+        }
+    };
+    PoseSigma {
+        position_m: share(rms_position_m, MIN_VISUAL_SIGMA_POSITION_M),
+        rotation_rad: share(rms_rotation_rad, MIN_VISUAL_SIGMA_ROTATION_RAD),
+    }
+}
+
 /// Longest interpolated gap: the 50 ms contiguous-run limit.
 pub const DEFAULT_MAX_INTERPOLATION_GAP_S: f64 = 0.05;
 /// Same-frame tolerance: well below one frame period at 120 fps (8.3 ms).
@@ -568,6 +595,12 @@ pub struct SourceResiduals {
     pub median_rotation_rad: f64,
     /// 95th-percentile rotation residual (rad).
     pub p95_rotation_rad: f64,
+    /// Position noise the graph gave this source (m).
+    #[serde(default)]
+    pub sigma_position_m: f64,
+    /// Rotation noise the graph gave this source (rad).
+    #[serde(default)]
+    pub sigma_rotation_rad: f64,
 }
 
 /// Solver and residual statistics of a fusion run, for the quality record.
@@ -639,6 +672,12 @@ pub fn residual_statistics(
         stats[s].p95_position_m = percentile(&pos, 0.95);
         stats[s].median_rotation_rad = percentile(&rot, 0.5);
         stats[s].p95_rotation_rad = percentile(&rot, 0.95);
+        let sigma = match source {
+            Source::Front => config.front_sigma,
+            Source::Rear => config.rear_sigma,
+        };
+        stats[s].sigma_position_m = sigma.position_m;
+        stats[s].sigma_rotation_rad = sigma.rotation_rad;
     }
     FusionStatistics {
         nodes: result.nodes.len(),
@@ -680,5 +719,19 @@ mod tests {
         // Frames that stay clear of the hole integrate normally.
         let before: Vec<f64> = (1..9).map(|k| k as f64 * 0.1).collect();
         assert!(preintegrate_nodes(&samples, &params, &before, ImuBias::default()).is_ok());
+    }
+
+    #[test]
+    fn visual_noise_is_the_lenses_disagreement_shared_equally() {
+        let s = visual_sigma_from_disagreement(8e-3, 0.2f64.to_radians());
+        assert!((s.position_m - 8e-3 / 2f64.sqrt()).abs() < 1e-12);
+        assert!((s.rotation_rad - 0.2f64.to_radians() / 2f64.sqrt()).abs() < 1e-12);
+        // Agreement below what a frame resolves, or no figure at all: the floors.
+        let tiny = visual_sigma_from_disagreement(1e-5, 1e-6);
+        assert_eq!(tiny.position_m, MIN_VISUAL_SIGMA_POSITION_M);
+        assert_eq!(tiny.rotation_rad, MIN_VISUAL_SIGMA_ROTATION_RAD);
+        let none = visual_sigma_from_disagreement(f64::NAN, f64::INFINITY);
+        assert_eq!(none.position_m, MIN_VISUAL_SIGMA_POSITION_M);
+        assert_eq!(none.rotation_rad, MIN_VISUAL_SIGMA_ROTATION_RAD);
     }
 }

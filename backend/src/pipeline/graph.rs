@@ -331,10 +331,13 @@ pub fn build(ctx: &SessionContext, episodes: &[String]) -> Vec<StageNode> {
                     episode: episode.clone(),
                     side,
                 },
-                vec![id_of(&StageKind::Observations {
-                    episode: episode.clone(),
-                    side,
-                })],
+                vec![
+                    id_of(&StageKind::Observations {
+                        episode: episode.clone(),
+                        side,
+                    }),
+                    id_of(&StageKind::Placement { side }),
+                ],
             );
             if ctx.wrists.get(&side).is_some_and(|w| w.tool.is_some()) {
                 push(

@@ -25,7 +25,7 @@ use crate::formats::results::{
 use crate::formats::tables::{
     read_fused, read_localizations, read_observations, write_fused, write_observations,
 };
-use crate::fusion::{FusionConfig, fuse};
+use crate::fusion::{FusionConfig, fuse, visual_sigma_from_disagreement};
 use crate::metric::MetricConfig;
 use crate::observations::{SceneReference, body_observations};
 use crate::placement::PlacementConfig;
@@ -68,7 +68,7 @@ pub fn version(kind: &StageKind) -> &'static str {
         StageKind::Metric { .. } => "metric-1",
         StageKind::Placement { .. } => "placement-1",
         StageKind::Observations { .. } => "observations-2",
-        StageKind::Fusion { .. } => "fusion-3",
+        StageKind::Fusion { .. } => "fusion-4",
         StageKind::Gripper { .. } => "gripper-1",
         StageKind::Head { .. } => "head-2",
         StageKind::Floor { .. } => "floor-1",
@@ -85,8 +85,11 @@ pub fn parameters(kind: &StageKind) -> serde_json::Value {
         StageKind::Fusion { .. } => {
             let c = FusionConfig::default();
             serde_json::json!({
-                "front_sigma": [c.front_sigma.position_m, c.front_sigma.rotation_rad],
-                "rear_sigma": [c.rear_sigma.position_m, c.rear_sigma.rotation_rad],
+                "visual_sigma": "placement RMS / sqrt(2), both lenses",
+                "min_visual_sigma": [
+                    crate::fusion::MIN_VISUAL_SIGMA_POSITION_M,
+                    crate::fusion::MIN_VISUAL_SIGMA_ROTATION_RAD
+                ],
                 "huber_k": c.huber_k,
                 "max_interpolation_gap_s": c.max_interpolation_gap_s,
                 "match_tolerance_s": c.match_tolerance_s,
@@ -933,7 +936,19 @@ fn run_fusion(env: &StageEnv<'_>, episode: &str, side: Side) -> Result<()> {
         .map(|f| (f.t, f.t + w.front.time_shift_s + centre))
         .filter(|(_, t)| (first..=last).contains(t) && (first..=last).contains(&(t - centre)))
         .unzip();
-    let config = FusionConfig::default();
+    let placement_path = env
+        .dep_dir(&StageKind::Placement { side })
+        .join("placement.json");
+    let placement = read_placement(&placement_path)?;
+    let sigma = visual_sigma_from_disagreement(
+        placement.rms_position_m,
+        placement.rms_rotation_deg.to_radians(),
+    );
+    let config = FusionConfig {
+        front_sigma: sigma,
+        rear_sigma: sigma,
+        ..FusionConfig::default()
+    };
     let mut result = fuse(imu.samples(), &w.imu, &node_times, &observations, &config)?;
     let statistics = crate::fusion::residual_statistics(&result, &observations, &config);
     if centre > 0.0 {
