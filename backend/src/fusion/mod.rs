@@ -144,6 +144,16 @@ pub const DEFAULT_MAX_INTERPOLATION_GAP_S: f64 = 0.05;
 /// Same-frame tolerance: well below one frame period at 120 fps (8.3 ms).
 pub const DEFAULT_MATCH_TOLERANCE_S: f64 = 1e-3;
 
+impl FusionConfig {
+    /// The noise of `source`'s observations.
+    pub fn sigma(&self, source: Source) -> PoseSigma {
+        match source {
+            Source::Front => self.front_sigma,
+            Source::Rear => self.rear_sigma,
+        }
+    }
+}
+
 impl Default for FusionConfig {
     fn default() -> Self {
         Self {
@@ -455,10 +465,7 @@ pub fn fuse(
                 if source == Source::Rear && interpolated {
                     interpolated_rear.push(k);
                 }
-                let sigma = match source {
-                    Source::Front => config.front_sigma,
-                    Source::Rear => config.rear_sigma,
-                };
+                let sigma = config.sigma(source);
                 factors.push(PoseFactor {
                     node: k,
                     z,
@@ -672,10 +679,7 @@ pub fn residual_statistics(
         stats[s].p95_position_m = percentile(&pos, 0.95);
         stats[s].median_rotation_rad = percentile(&rot, 0.5);
         stats[s].p95_rotation_rad = percentile(&rot, 0.95);
-        let sigma = match source {
-            Source::Front => config.front_sigma,
-            Source::Rear => config.rear_sigma,
-        };
+        let sigma = config.sigma(source);
         stats[s].sigma_position_m = sigma.position_m;
         stats[s].sigma_rotation_rad = sigma.rotation_rad;
     }

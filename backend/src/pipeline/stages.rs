@@ -44,6 +44,8 @@ pub const POSES_FILE: &str = "poses.csv";
 pub const OBSERVATIONS_FILE: &str = "obs.csv";
 /// The fused trajectory inside a fusion stage's folder.
 pub const FUSED_FILE: &str = "fused.csv";
+/// The placement stage's record (`scene_from_front_map` and its residuals).
+pub const PLACEMENT_FILE: &str = "placement.json";
 /// The sync result inside the sync stage's folder.
 pub const SYNC_FILE: &str = "sync.json";
 /// The tool calibration (or why there is none) inside a tool stage's folder.
@@ -487,7 +489,7 @@ fn export_inputs(ctx: &SessionContext, format: ExportFormat) -> Result<Vec<Input
                 stage(StageKind::Metric { map }).join("metric.json"),
             ];
             if let MapName::Front(side) = map {
-                files.push(stage(StageKind::Placement { side }).join("placement.json"));
+                files.push(stage(StageKind::Placement { side }).join(PLACEMENT_FILE));
             }
             for f in files {
                 v.push(file_input(
@@ -845,7 +847,7 @@ fn run_placement(env: &StageEnv<'_>, side: Side) -> Result<()> {
             side.camera_name()
         ))
     })?;
-    write_json(&env.out.join("placement.json"), &file)
+    write_json(&env.out.join(PLACEMENT_FILE), &file)
 }
 
 /// Time from a frame's timestamp (its first row) to its exposure centre (s): half the rolling
@@ -879,7 +881,7 @@ pub fn scene_reference(ctx: &SessionContext, side: Side) -> Result<SceneReferenc
     })
     .join("metric.json");
     let rear_path = dir(StageKind::Metric { map: MapName::Rear }).join("metric.json");
-    let placement_path = dir(StageKind::Placement { side }).join("placement.json");
+    let placement_path = dir(StageKind::Placement { side }).join(PLACEMENT_FILE);
     let front = read_metric(&front_path)?;
     let rear = read_metric(&rear_path)?;
     let placement: PlacementFile = read_placement(&placement_path)?;
@@ -938,7 +940,7 @@ fn run_fusion(env: &StageEnv<'_>, episode: &str, side: Side) -> Result<()> {
         .unzip();
     let placement_path = env
         .dep_dir(&StageKind::Placement { side })
-        .join("placement.json");
+        .join(PLACEMENT_FILE);
     let placement = read_placement(&placement_path)?;
     let sigma = visual_sigma_from_disagreement(
         placement.rms_position_m,
@@ -1254,7 +1256,7 @@ pub fn map_in_scene(root: &Path, map: MapName) -> Result<(VisualMap, Vec<nalgebr
     let placement = match map {
         MapName::Rear => None,
         MapName::Front(side) => {
-            let path = dir(StageKind::Placement { side }).join("placement.json");
+            let path = dir(StageKind::Placement { side }).join(PLACEMENT_FILE);
             Some(read_placement(&path)?.scene_from_front_map.to_sim3(&path)?)
         }
     };
@@ -1449,7 +1451,7 @@ fn run_outputs(env: &StageEnv<'_>, episode: &str) -> Result<()> {
         )?;
         let placement = read_placement(
             &env.dep_dir(&StageKind::Placement { side })
-                .join("placement.json"),
+                .join(PLACEMENT_FILE),
         )?;
         let (opening, tool_calibrated) = if w.tool.is_some() {
             let record: ToolRecord = read_json_file(
