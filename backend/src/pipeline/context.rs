@@ -64,6 +64,8 @@ pub struct SessionContext {
     pub session: Session,
     /// Wrists by side.
     pub wrists: BTreeMap<Side, WristContext>,
+    /// The session's remembered input digests.
+    pub digests: std::sync::Arc<super::digests::DigestCache>,
 }
 
 fn input(path: &Path, message: String) -> BackendError {
@@ -130,6 +132,7 @@ impl SessionContext {
             );
         }
         Ok(Self {
+            digests: std::sync::Arc::new(super::digests::DigestCache::load(&root)),
             root,
             toml: session_toml.to_path_buf(),
             session,

@@ -8,13 +8,15 @@
 //!   atomic replacement of a stage's folder);
 //! - [`stages`]: each stage's inputs, version, parameters and body;
 //! - [`runner`]: executes the graph in parallel and reports per stage and per episode;
-//! - [`status`]: `kiwi status`.
+//! - [`status`]: `kiwi status`;
+//! - [`digests`]: input files' digests, remembered while a file is unchanged.
 //!
 //! The algorithms live in the stage modules named as the paper names them: [`crate::sync`],
 //! [`crate::vision`], [`crate::metric`], [`crate::placement`], [`crate::observations`],
 //! [`crate::fusion`], [`crate::gripper`], [`crate::outputs`] and [`crate::quality`].
 
 pub mod context;
+pub mod digests;
 pub mod graph;
 pub mod runner;
 pub mod stage;

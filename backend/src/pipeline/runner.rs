@@ -425,6 +425,7 @@ pub fn run(
             out,
         });
     }
+    ctx.digests.save();
     Ok(RunReport {
         stages,
         episodes: reports,

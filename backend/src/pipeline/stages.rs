@@ -9,7 +9,7 @@
 use std::path::{Path, PathBuf};
 
 use kiwi_core::imu::ImuSeries;
-use kiwi_core::io::{sha256_bytes, sha256_file, write_atomic};
+use kiwi_core::io::{sha256_bytes, write_atomic};
 use kiwi_core::layout::{EpisodeLayout, Side};
 use kiwi_core::tool::ToolCalibration;
 
@@ -148,14 +148,15 @@ fn file_input(ctx: &SessionContext, name: String, path: &Path) -> Result<InputDi
     Ok(InputDigest {
         name,
         path: ctx.relative(path),
-        digest: sha256_file(path)?,
+        digest: ctx.digests.sha256(path)?,
     })
 }
 
 /// Digest of a lens stream. An image stream: its `frames.csv` and every frame file's name and
 /// size (the images are not read: hashing hundreds of gigabytes of frames per check would cost
 /// more than the check saves; a frame replaced by one of the same size is not noticed). A video
-/// stream: its `frames.csv`, `video.json` and the video's content (one sequential read).
+/// stream: its `frames.csv`, `video.json` and the video's content (one sequential read,
+/// remembered while the file keeps its size and time: [`super::digests`]).
 pub fn stream_input(
     ctx: &SessionContext,
     layout: &EpisodeLayout,
@@ -177,15 +178,15 @@ pub fn stream_input(
         ));
     }
     let frames = kiwi_core::layout::read_frames_csv(&csv)?;
-    let mut text = sha256_file(&csv)?;
+    let mut text = ctx.digests.sha256(&csv)?;
     text.push('\n');
     match kiwi_core::layout::LensStorage::of(&layout.lens_dir(camera, lens))? {
         kiwi_core::layout::LensStorage::Video(video) => {
             video.check_frames(&csv, &frames)?;
-            text.push_str(&sha256_file(&layout.video_json(camera, lens))?);
+            text.push_str(&ctx.digests.sha256(&layout.video_json(camera, lens))?);
             text.push('\n');
             let file = layout.lens_dir(camera, lens).join(&video.file);
-            text.push_str(&format!("{}={}\n", video.file, sha256_file(&file)?));
+            text.push_str(&format!("{}={}\n", video.file, ctx.digests.sha256(&file)?));
         }
         kiwi_core::layout::LensStorage::Images => {
             for f in &frames {

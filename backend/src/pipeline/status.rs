@@ -55,5 +55,6 @@ pub fn status(ctx: &SessionContext, episodes: Option<&[String]>) -> Result<Vec<S
             seconds: manifest.map(|m| m.seconds),
         });
     }
+    ctx.digests.save();
     Ok(out)
 }
