@@ -637,36 +637,50 @@ fn a_session_ingested_from_camera_mp4_files_reconstructs_like_the_png_session() 
     let (a_png, a_mp4) = (alignment(&png), alignment(&mp4_session));
     let mut failures = Vec::new();
     let mut rows = Vec::new();
-    for episode in ["ep001", "ep002", "ep003"] {
-        for camera in ["left", "right"] {
-            let p = tip_errors(&png, episode, camera, &a_png, None);
-            let m = tip_errors(&mp4_session, episode, camera, &a_mp4, None);
-            let (pm, pp) = median_p95(p.position.clone());
-            let (mm, mp) = median_p95(m.position.clone());
-            println!(
-                "{episode} {camera}: PNG {} frames, median {:.1} mm, p95 {:.1} mm | MP4 {} frames, \
-                 median {:.1} mm, p95 {:.1} mm",
-                p.frames,
-                pm * 1e3,
-                pp * 1e3,
-                m.frames,
-                mm * 1e3,
-                mp * 1e3
-            );
-            if p.frames != m.frames {
-                failures.push(format!(
-                    "{episode} {camera}: {} frames out of the MP4 session, {} of the PNG one",
-                    m.frames, p.frames
-                ));
-            }
-            rows.push((pm, mm));
+    for (episode, camera) in COMPARED {
+        let p = tip_errors(&png, episode, camera, &a_png, None);
+        let m = tip_errors(&mp4_session, episode, camera, &a_mp4, None);
+        let (pm, pp) = median_p95(p.position.clone());
+        let (mm, mp) = median_p95(m.position.clone());
+        println!(
+            "{episode} {camera}: PNG {} frames, median {:.1} mm, p95 {:.1} mm | MP4 {} frames, \
+             median {:.1} mm, p95 {:.1} mm",
+            p.frames,
+            pm * 1e3,
+            pp * 1e3,
+            m.frames,
+            mm * 1e3,
+            mp * 1e3
+        );
+        if p.frames != m.frames {
+            failures.push(format!(
+                "{episode} {camera}: {} frames out of the MP4 session, {} of the PNG one",
+                m.frames, p.frames
+            ));
         }
+        rows.push(mm);
     }
-    let png_mean = rows.iter().map(|r| r.0).sum::<f64>() / rows.len() as f64;
-    let mp4_mean = rows.iter().map(|r| r.1).sum::<f64>() / rows.len() as f64;
+    let mp4_mean = rows.iter().sum::<f64>() / rows.len() as f64;
+    // The PNG figure: the unperturbed run and the perturbed ones (one run is one draw of the
+    // pipeline's sensitivity to its input's last bit).
+    let mut reference = vec![mean_tip_median(&png)];
+    for seed in PERTURBED_SEEDS {
+        reference.push(mean_tip_median(&perturbed_run(seed)));
+    }
+    let png_mean = reference.iter().sum::<f64>() / reference.len() as f64;
+    let (low, high) = reference
+        .iter()
+        .fold((f64::INFINITY, 0.0f64), |(l, h), &v| (l.min(v), h.max(v)));
     println!(
-        "mean tool-tip median: PNG {:.2} mm, MP4 {:.2} mm ({:+.1} %)",
+        "mean tool-tip median: PNG runs {:?} mm (mean {:.2}, range {:.2}-{:.2}), MP4 {:.2} mm \
+         ({:+.1} % of the PNG runs' mean)",
+        reference
+            .iter()
+            .map(|v| (v * 1e5).round() / 1e2)
+            .collect::<Vec<_>>(),
         png_mean * 1e3,
+        low * 1e3,
+        high * 1e3,
         mp4_mean * 1e3,
         (mp4_mean / png_mean - 1.0) * 100.0
     );
@@ -682,3 +696,104 @@ fn a_session_ingested_from_camera_mp4_files_reconstructs_like_the_png_session() 
 /// The generic MP4 path may cost at most this fraction of the PNG session's mean tool-tip
 /// median (the issue's acceptance: within 10 %).
 const MP4_WORSE_FRACTION: f64 = 0.10;
+
+/// The episodes and wrists whose tool-tip medians the MP4 comparison averages (the mapping
+/// episode is where the alignment is fitted).
+const COMPARED: [(&str, &str); 6] = [
+    ("ep001", "left"),
+    ("ep001", "right"),
+    ("ep002", "left"),
+    ("ep002", "right"),
+    ("ep003", "left"),
+    ("ep003", "right"),
+];
+
+/// Seeds of the PNG session's perturbed runs: every lens frame given seeded noise of −1, 0 or
+/// +1 DN (the same on R, G and B), a change of the size a codec makes that is not a codec. The
+/// spread of these runs is the pipeline's own sensitivity; with the unperturbed run they make
+/// the PNG figure a coded session is judged against.
+const PERTURBED_SEEDS: [u64; 3] = [1, 2, 3];
+
+/// Mean over [`COMPARED`] of the tool-tip median (m).
+fn mean_tip_median(session: &Path) -> f64 {
+    let world_from_scene = alignment(session);
+    let medians: Vec<f64> = COMPARED
+        .iter()
+        .map(|(episode, camera)| {
+            median_p95(tip_errors(session, episode, camera, &world_from_scene, None).position).0
+        })
+        .collect();
+    medians.iter().sum::<f64>() / medians.len() as f64
+}
+
+/// SplitMix64: a seeded stream of noise for the perturbed frames.
+fn splitmix(state: &mut u64) -> u64 {
+    *state = state.wrapping_add(0x9E37_79B9_7F4A_7C15);
+    let mut z = *state;
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
+/// The shared session's inputs with every lens frame perturbed (see [`PERTURBED_SEEDS`]),
+/// run through the pipeline once per machine (a `perturbed-<seed>-ran` marker).
+fn perturbed_run(seed: u64) -> PathBuf {
+    let png = shared_run();
+    let root = png.parent().unwrap().to_path_buf();
+    let dir = root.join(format!("perturbed-{seed}"));
+    let ran = root.join(format!("perturbed-{seed}-ran"));
+    let lock = std::fs::File::create(root.join(".perturbed-lock")).unwrap();
+    lock.lock().unwrap();
+    if !ran.is_file() {
+        let _ = std::fs::remove_dir_all(&dir);
+        copy_tree(&root.join("session"), &dir);
+        let mut frames: Vec<PathBuf> = Vec::new();
+        let mut stack = vec![dir.join("episodes")];
+        while let Some(d) = stack.pop() {
+            for e in std::fs::read_dir(&d).unwrap().flatten() {
+                let p = e.path();
+                if p.is_dir() {
+                    if p.file_name().is_some_and(|n| n != "truth") {
+                        stack.push(p);
+                    }
+                } else if p.extension().is_some_and(|x| x == "png") {
+                    frames.push(p);
+                }
+            }
+        }
+        frames.sort();
+        let perturb = |k: usize, path: &Path| {
+            let mut image = image::open(path).unwrap().to_rgb8();
+            let mut state = seed.wrapping_mul(0x1000_0000_01B3) ^ k as u64;
+            for px in image.pixels_mut() {
+                let delta = (splitmix(&mut state) % 3) as i16 - 1;
+                for c in &mut px.0 {
+                    *c = (i16::from(*c) + delta).clamp(0, 255) as u8;
+                }
+            }
+            // Replace the hard link with a new file (the shared session keeps its frame).
+            std::fs::remove_file(path).unwrap();
+            image.save(path).unwrap();
+        };
+        std::thread::scope(|s| {
+            for part in 0..2 {
+                let frames = &frames;
+                s.spawn(move || {
+                    for (k, path) in frames.iter().enumerate().skip(part).step_by(2) {
+                        perturb(k, path);
+                    }
+                });
+            }
+        });
+        let ctx = SessionContext::load(&dir.join("session.toml")).unwrap();
+        let report = run(&ctx, &RunOptions::default(), &NoProgress).unwrap();
+        println!(
+            "perturbed run {seed} ({} frames): {:?}",
+            frames.len(),
+            report.counts
+        );
+        std::fs::write(&ran, b"ok").unwrap();
+    }
+    lock.unlock().unwrap();
+    dir
+}
