@@ -136,6 +136,25 @@ impl GrayImage {
 
     /// Bilinear value at a sub-pixel position (pixel centres at integers), 0 outside.
     pub fn sample(&self, x: f64, y: f64) -> f32 {
+        let (w, h) = (self.width as usize, self.height as usize);
+        // Inside the image (all four neighbours exist): truncation is the floor and no neighbour
+        // needs a bounds check. The arithmetic is the general path's, so values are identical.
+        if x >= 0.0 && y >= 0.0 && x < w.saturating_sub(1) as f64 && y < h.saturating_sub(1) as f64
+        {
+            let (x0, y0) = (x as usize, y as usize);
+            let (ax, ay) = ((x - x0 as f64) as f32, (y - y0 as f64) as f32);
+            let i = y0 * w + x0;
+            let (a, b) = (f32::from(self.data[i]), f32::from(self.data[i + 1]));
+            let (c, d) = (f32::from(self.data[i + w]), f32::from(self.data[i + w + 1]));
+            let top = a + (b - a) * ax;
+            let bottom = c + (d - c) * ax;
+            return top + (bottom - top) * ay;
+        }
+        self.sample_bounded(x, y)
+    }
+
+    /// [`GrayImage::sample`] with every neighbour bounds-checked (any position).
+    fn sample_bounded(&self, x: f64, y: f64) -> f32 {
         let (fx, fy) = (x.floor(), y.floor());
         let (ax, ay) = ((x - fx) as f32, (y - fy) as f32);
         let (x0, y0) = (fx as i64, fy as i64);
@@ -1106,6 +1125,28 @@ fn klt_forward_backward<I: opencv::core::ToInputArray>(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn sampling_inside_gives_the_bounds_checked_values_exactly() {
+        let (w, h) = (7u32, 5u32);
+        let data: Vec<u8> = (0..w * h).map(|k| ((k * 37 + 11) % 256) as u8).collect();
+        let image = GrayImage::new(w, h, data).unwrap();
+        let mut checked = 0;
+        for j in -8..=48 {
+            for i in -8..=64 {
+                let (x, y) = (f64::from(i) * 0.125 - 0.3, f64::from(j) * 0.125 - 0.2);
+                assert_eq!(
+                    image.sample(x, y).to_bits(),
+                    image.sample_bounded(x, y).to_bits(),
+                    "({x}, {y})"
+                );
+                checked += 1;
+            }
+        }
+        assert!(checked > 3000);
+        // Beyond the last row and column the missing neighbours are 0.
+        assert_eq!(image.sample(6.5, 0.0), 0.5 * f32::from(image.get(6, 0)));
+    }
 
     /// A descriptor with the first `ones` bits set.
     fn bits(ones: u32) -> Descriptor {
