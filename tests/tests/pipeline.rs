@@ -636,7 +636,7 @@ fn a_session_ingested_from_camera_mp4_files_reconstructs_like_the_png_session() 
 
     let (a_png, a_mp4) = (alignment(&png), alignment(&mp4_session));
     let mut failures = Vec::new();
-    let mut rows = Vec::new();
+    let (mut png_medians, mut mp4_medians) = (Vec::new(), Vec::new());
     for (episode, camera) in COMPARED {
         let p = tip_errors(&png, episode, camera, &a_png, None);
         let m = tip_errors(&mp4_session, episode, camera, &a_mp4, None);
@@ -658,16 +658,18 @@ fn a_session_ingested_from_camera_mp4_files_reconstructs_like_the_png_session() 
                 m.frames, p.frames
             ));
         }
-        rows.push(mm);
+        png_medians.push(pm);
+        mp4_medians.push(mm);
     }
-    let mp4_mean = rows.iter().sum::<f64>() / rows.len() as f64;
+    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
+    let mp4_mean = mean(&mp4_medians);
     // The PNG figure: the unperturbed run and the perturbed ones (one run is one draw of the
     // pipeline's sensitivity to its input's last bit).
-    let mut reference = vec![mean_tip_median(&png)];
+    let mut reference = vec![mean(&png_medians)];
     for seed in PERTURBED_SEEDS {
         reference.push(mean_tip_median(&perturbed_run(seed)));
     }
-    let png_mean = reference.iter().sum::<f64>() / reference.len() as f64;
+    let png_mean = mean(&reference);
     let (low, high) = reference
         .iter()
         .fold((f64::INFINITY, 0.0f64), |(l, h), &v| (l.min(v), h.max(v)));

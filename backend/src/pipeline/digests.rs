@@ -66,6 +66,12 @@ fn nanos(time: std::time::SystemTime) -> Option<u128> {
         .map(|d| d.as_nanos())
 }
 
+/// A file's size and modification time (ns), when both can be read.
+fn stamp(path: &Path) -> Option<(u64, u128)> {
+    let meta = std::fs::metadata(path).ok()?;
+    Some((meta.len(), nanos(meta.modified().ok()?)?))
+}
+
 impl DigestCache {
     /// The record of the session at `root` (empty when there is none or it cannot be read).
     pub fn load(root: &Path) -> Self {
@@ -94,11 +100,9 @@ impl DigestCache {
     /// SHA-256 of `path`: the remembered one when the file is unchanged, else computed (and
     /// remembered).
     pub fn sha256(&self, path: &Path) -> Result<String> {
-        let stamp = std::fs::metadata(path)
-            .ok()
-            .and_then(|m| Some((m.len(), nanos(m.modified().ok()?)?)));
+        let before = stamp(path);
         let key = self.key(path);
-        if let Some((size, modified_ns)) = stamp {
+        if let Some((size, modified_ns)) = before {
             let files = self
                 .files
                 .lock()
@@ -114,11 +118,8 @@ impl DigestCache {
         let hashed_ns = nanos(std::time::SystemTime::now()).unwrap_or(0);
         let sha256 = sha256_file(path)?;
         // Remember it only if the file did not change while it was read.
-        let after = std::fs::metadata(path)
-            .ok()
-            .and_then(|m| Some((m.len(), nanos(m.modified().ok()?)?)));
-        if let Some((size, modified_ns)) = stamp
-            && after == stamp
+        if let Some((size, modified_ns)) = before
+            && stamp(path) == before
         {
             let mut files = self
                 .files
