@@ -66,7 +66,7 @@ pub fn version(kind: &StageKind) -> &'static str {
         StageKind::Sync { .. } => "sync-2",
         StageKind::Map { .. } => "map-2",
         StageKind::Tool { .. } => "tool-1",
-        StageKind::Localize { .. } => "localize-5",
+        StageKind::Localize { .. } => "localize-6",
         StageKind::Metric { .. } => "metric-1",
         StageKind::Placement { .. } => "placement-1",
         StageKind::Observations { .. } => "observations-2",

@@ -25,12 +25,16 @@ use crate::vision::features::{
 };
 use crate::vision::frontend::{FrameTracker, TrackerOptions};
 use crate::vision::localize::{
-    FrameLocalization, LocalizationStatus, Localizer, LocalizerOptions, pixel_angle,
+    FrameLocalization, LocalizationStatus, Localizer, LocalizerOptions, RelocalizationSource,
+    pixel_angle,
 };
 use crate::vision::loop_closure::{LoopOptions, LoopReport, close_loops};
 use crate::vision::map::VisualMap;
 use crate::vision::mapping::{MapperOptions, global_adjustment, reconstruct};
 use crate::vision::quality::{MapQuality, assess};
+use crate::vision::runs::{
+    RunBook, conflict_reason, conflicts, runs_joining_withdrawn, runs_to_withdraw, withdraw,
+};
 
 /// Angle of one pixel at the centre of the 960 px X5 lens the mapper's defaults are tuned for.
 const REFERENCE_PIXEL_ANGLE_RAD: f64 = 1.0 / 290.0;
@@ -475,8 +479,15 @@ pub fn localize_stream(
         return Ok((results, summary));
     }
     let mut results = Vec::with_capacity(n);
+    let mut book = RunBook::new(n);
+    let mut run = None;
     stream.for_each_frame(|i, img| {
-        results.push(localizer.process(i as u32, stream.frames[i].t, &img)?);
+        let r = localizer.process(i as u32, stream.frames[i].t, &img)?;
+        run = book.follow(i, &r, localizer.relocalization_source(), run);
+        if r.map_from_cam.is_some() {
+            book.frame_run[i] = run;
+        }
+        results.push(r);
         progress(i + 1, n);
         Ok(())
     })?;
@@ -487,9 +498,62 @@ pub fn localize_stream(
         .zip(results.first())
         .map(|(r, f)| r.t - f.t);
     let (mut attempts, mut attempt_s) = localizer.relocalization_cost();
-    let (back_attempts, back_s) = backfill(map, stream, options, &mut results)?;
+    let (back_attempts, back_s) = backfill(map, stream, options, &mut results, &mut book)?;
     attempts += back_attempts;
     attempt_s += back_s;
+    // Runs that no hand-held motion joins: withdraw the one whose start rests on less, fill
+    // its frames again from the runs that stay, withdraw a refilled run that returns to a
+    // withdrawn place, and whatever still does not join.
+    let depth = localizer.map_depth();
+    let found = conflicts(&results, &book, depth);
+    if !found.is_empty() {
+        let mut gone = vec![None; n];
+        let runs = runs_to_withdraw(&found, &book);
+        let why = |r: &[FrameLocalization], b: &RunBook, run| conflict_reason(r, b, &found, run);
+        let mut withdrawn = withdraw(&mut results, &mut book, &runs, why, &mut gone);
+        // Once a whole-map match has fooled this stream, its frames are filled again only by
+        // tracking from the runs that stay and by place-recognition windows.
+        let fooled_whole_map = runs
+            .iter()
+            .any(|&r| book.runs[r].source == RelocalizationSource::WholeMap);
+        let refill = LocalizerOptions {
+            relocalization_map_candidates: if fooled_whole_map {
+                0
+            } else {
+                options.relocalization_map_candidates
+            },
+            ..*options
+        };
+        let (back_attempts, back_s) = backfill(map, stream, &refill, &mut results, &mut book)?;
+        attempts += back_attempts;
+        attempt_s += back_s;
+        // A run that joins a withdrawn pose is at the same look-alike; withdrawing it can show
+        // the next one (each round withdraws at least one run, so this ends).
+        loop {
+            let again = runs_joining_withdrawn(&results, &book, &gone, depth);
+            if again.is_empty() {
+                break;
+            }
+            let why_again = |_: &[FrameLocalization], b: &RunBook, run: usize| {
+                format!(
+                    "withdrawn: the run that began at frame {} ({}) joins poses withdrawn as a \
+                     look-alike place",
+                    b.runs[run].start,
+                    b.runs[run].source.describe()
+                )
+            };
+            withdrawn += withdraw(&mut results, &mut book, &again, why_again, &mut gone);
+        }
+        let left = conflicts(&results, &book, depth);
+        let runs = runs_to_withdraw(&left, &book);
+        let why = |r: &[FrameLocalization], b: &RunBook, run| conflict_reason(r, b, &left, run);
+        withdrawn += withdraw(&mut results, &mut book, &runs, why, &mut gone);
+        tracing::info!(
+            "{}/{}: {withdrawn} frames withdrawn from runs that do not join the stream",
+            stream.camera_name,
+            stream.lens
+        );
+    }
     let mut summary = summarize(&results, start.elapsed().as_secs_f64());
     summary.relocalization_attempts = attempts;
     summary.first_pose_after_s = first_pose_after_s;
@@ -536,6 +600,7 @@ fn backfill(
     stream: &LensStream,
     options: &LocalizerOptions,
     results: &mut [FrameLocalization],
+    book: &mut RunBook,
 ) -> Result<(usize, f64)> {
     let n = results.len();
     let (mut attempts, mut seconds) = (0, 0.0);
@@ -564,11 +629,15 @@ fn backfill(
         } else {
             (b + BACKFILL_LEAD).min(n - 1)
         };
+        // Filled frames join the run they were tracked from: frame b's when seeded from it.
+        let mut run = if seeded { book.frame_run[b] } else { None };
         for j in (a..=top).rev() {
             let image = stream.load(j)?;
             let r = localizer.process(j as u32, stream.frames[j].t, &image)?;
+            run = book.follow(j, &r, localizer.relocalization_source(), run);
             if j < b && r.status != LocalizationStatus::Lost {
                 results[j] = r;
+                book.frame_run[j] = run;
             }
         }
         let (a, s) = localizer.relocalization_cost();

@@ -63,6 +63,26 @@ pub enum LocalizationStatus {
     Lost,
 }
 
+/// What a relocalized pose was found on.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub enum RelocalizationSource {
+    /// A keyframe window that place recognition proposed, verified against its landmarks.
+    Window,
+    /// The whole map matched at once, without place recognition (the attempt a look-alike
+    /// place in repeated texture can fool).
+    WholeMap,
+}
+
+impl RelocalizationSource {
+    /// How the source reads in a lost frame's reason.
+    pub fn describe(self) -> &'static str {
+        match self {
+            Self::Window => "relocalized on a place-recognition window",
+            Self::WholeMap => "relocalized by a whole-map match",
+        }
+    }
+}
+
 impl LocalizationStatus {
     /// Name in `poses.csv`.
     pub fn name(self) -> &'static str {
@@ -490,6 +510,8 @@ pub struct Localizer {
     /// Train descriptors of every landmark and keyframe view with their landmarks, built at the
     /// first whole-map attempt (the map never changes).
     whole_map_train: std::cell::OnceCell<(Vec<Descriptor>, Vec<u32>)>,
+    /// What the last relocalized pose was found on.
+    last_source: RelocalizationSource,
 }
 
 fn vision_err(message: String) -> BackendError {
@@ -612,6 +634,7 @@ impl Localizer {
             map_attempts_in_run: 0,
             window_attempts_since_map: 0,
             whole_map_train: std::cell::OnceCell::new(),
+            last_source: RelocalizationSource::Window,
         })
     }
 
@@ -623,6 +646,17 @@ impl Localizer {
     /// Relocalization attempts so far and their total wall time (s).
     pub fn relocalization_cost(&self) -> (usize, f64) {
         (self.attempts, self.attempt_seconds)
+    }
+
+    /// What the last relocalized pose was found on (meaningful after a frame came back
+    /// [`LocalizationStatus::Relocalized`]).
+    pub fn relocalization_source(&self) -> RelocalizationSource {
+        self.last_source
+    }
+
+    /// The map's median keyframe-to-landmark depth (map units): its length scale.
+    pub fn map_depth(&self) -> f64 {
+        self.map_depth
     }
 
     /// Localize a frame from a pose known for a neighbouring frame (instead of relocalizing:
@@ -1033,14 +1067,17 @@ impl Localizer {
             self.window_attempts_since_map += 1;
         }
         match relocalized {
-            Ok(e) => Ok(self.finish(
-                frame,
-                t,
-                &e,
-                pyramid,
-                LocalizationStatus::Relocalized,
-                usize::MAX,
-            )),
+            Ok((e, source)) => {
+                self.last_source = source;
+                Ok(self.finish(
+                    frame,
+                    t,
+                    &e,
+                    pyramid,
+                    LocalizationStatus::Relocalized,
+                    usize::MAX,
+                ))
+            }
             Err((why, n)) => Ok(FrameLocalization::lost(
                 frame,
                 t,
@@ -1342,7 +1379,7 @@ impl Localizer {
         feats: &FrameFeatures,
         whole_map: bool,
         mut trace: Option<&mut Vec<CandidateTrace>>,
-    ) -> std::result::Result<Estimate, (String, usize)> {
+    ) -> std::result::Result<(Estimate, RelocalizationSource), (String, usize)> {
         if feats.keypoints.len() < self.options.min_inliers_relocalization {
             return Err((
                 format!("{} ORB features in the frame", feats.keypoints.len()),
@@ -1398,7 +1435,10 @@ impl Localizer {
                 &mut last_reason,
             );
         }
-        if best.is_none() && whole_map && self.options.relocalization_map_candidates > 0 {
+        if let Some(e) = best {
+            return Ok((e, RelocalizationSource::Window));
+        }
+        if whole_map && self.options.relocalization_map_candidates > 0 {
             let (train, groups) = self.whole_map_train.get_or_init(|| {
                 let all: Vec<u32> = (0..self.positions.len() as u32).collect();
                 self.train_set(&all, 0..n_kf)
@@ -1429,7 +1469,8 @@ impl Localizer {
                 &mut last_reason,
             );
         }
-        best.ok_or((last_reason, best_rejected))
+        best.map(|e| (e, RelocalizationSource::WholeMap))
+            .ok_or((last_reason, best_rejected))
     }
 
     /// Train descriptors of `landmarks` (their representatives) and of every view of theirs in

@@ -19,6 +19,8 @@
 //! - [`quality`]: the mapper's own check of a finished map (forward against reversed mapping).
 //! - [`localize`]: every frame against a frozen map (KLT tracking with guided top-up,
 //!   relocalization by place recognition, strict acceptance).
+//! - [`runs`]: the runs of a localized stream and whether they join (a look-alike place is
+//!   withdrawn).
 //! - [`episode`]: prepared-episode drivers behind `kiwi map` and `kiwi localize`.
 //!
 //! Determinism: every random choice comes from a seeded ChaCha8 generator and every reduction
@@ -36,3 +38,4 @@ pub mod map;
 pub mod mapping;
 pub mod place;
 pub mod quality;
+pub mod runs;

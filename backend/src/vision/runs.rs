@@ -1,0 +1,423 @@
+//! Runs of a localized stream, and whether they fit together: a hand-held camera cannot jump.
+//!
+//! A stream's poses come in runs. Each run starts with a relocalization (or, in the backward
+//! pass, from the pose of a later run) and goes on by tracking, every frame consistent with the
+//! one before. In a room with repeated texture (tiles, wallpaper, the same poster twice) a
+//! relocalization can fit the view to a look-alike place, the pattern shifted by a period, and
+//! tracking then carries that wrong pose on: each frame on its own passes every acceptance rule.
+//! Where two runs meet, their poses must be reachable from one another at a hand's speed; where
+//! they are not, at least one of them is wrong. This module finds such meetings and withdraws
+//! the run whose start rests on less: a run begun by matching the whole map at once (no place
+//! recognition, the attempt a look-alike fools) before one begun on a keyframe window that place
+//! recognition proposed; both when their starts are alike (nothing tells which is right, and a
+//! frame without a pose is better than a wrong one).
+
+use std::collections::BTreeSet;
+
+use kiwi_core::geometry::Pose;
+
+use crate::vision::localize::{FrameLocalization, LocalizationStatus, RelocalizationSource};
+
+/// Fastest a hand-held camera moves, in the map's median keyframe-to-landmark depths per
+/// second: 3 depths/s is 4.5 m/s in a room seen at 1.5 m (above a hand's fastest reach), while
+/// a look-alike place one pattern period away is several times farther than a frame interval
+/// allows.
+pub const MAX_SPEED_DEPTHS_PER_S: f64 = 3.0;
+/// What two runs' localization noise may add to their apparent jump where they meet (median
+/// depths): centimetres in a room, ~10x the localizer's worst accepted error.
+pub const JUMP_ALLOWANCE_DEPTHS: f64 = 0.1;
+/// Fastest rotation of a hand-held camera (rad/s): ~1000 °/s, above a wrist's flick.
+pub const MAX_ANGULAR_RATE_RAD_PER_S: f64 = 17.0;
+/// What localization noise may add to the rotation between two runs where they meet (rad, 10°).
+pub const ROTATION_ALLOWANCE_RAD: f64 = 0.175;
+
+/// How a run's first pose was found.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Run {
+    /// Frame the run started at (its relocalization, or the later frame a backward pass
+    /// started from).
+    pub start: usize,
+    /// What that start rests on.
+    pub source: RelocalizationSource,
+}
+
+/// The run each frame's pose belongs to (`None` for a frame without a pose).
+#[derive(Debug, Clone, Default)]
+pub struct RunBook {
+    /// Per frame, an index into `runs`.
+    pub frame_run: Vec<Option<usize>>,
+    /// Every run so far.
+    pub runs: Vec<Run>,
+}
+
+impl RunBook {
+    /// A book for `n` frames, none localized.
+    pub fn new(n: usize) -> Self {
+        Self {
+            frame_run: vec![None; n],
+            runs: Vec::new(),
+        }
+    }
+
+    /// Start a run at frame `start`; returns its index.
+    pub fn open(&mut self, start: usize, source: RelocalizationSource) -> usize {
+        self.runs.push(Run { start, source });
+        self.runs.len() - 1
+    }
+
+    /// The run a localizer is in after producing `result` for frame `frame`: a relocalization
+    /// opens a new one (from `source`), tracking stays in `current`.
+    pub fn follow(
+        &mut self,
+        frame: usize,
+        result: &FrameLocalization,
+        source: RelocalizationSource,
+        current: Option<usize>,
+    ) -> Option<usize> {
+        match result.status {
+            LocalizationStatus::Relocalized => Some(self.open(frame, source)),
+            LocalizationStatus::Tracked | LocalizationStatus::Lost => current,
+        }
+    }
+}
+
+/// Two consecutive posed frames of different runs whose poses no hand could join.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Conflict {
+    /// The earlier frame.
+    pub before: usize,
+    /// The later frame.
+    pub after: usize,
+    /// Distance between their camera centres (median map depths).
+    pub jump_depths: f64,
+    /// Rotation between them (rad).
+    pub rotation_rad: f64,
+}
+
+/// Meetings of runs that no hand-held motion explains: consecutive posed frames (lost frames
+/// between them allowed) of different runs whose camera centres are farther apart than
+/// [`MAX_SPEED_DEPTHS_PER_S`] over the time between them plus [`JUMP_ALLOWANCE_DEPTHS`], or
+/// whose orientations differ by more than the rotation bounds allow. `depth` is the map's median
+/// keyframe-to-landmark depth (map units).
+pub fn conflicts(results: &[FrameLocalization], book: &RunBook, depth: f64) -> Vec<Conflict> {
+    let posed: Vec<usize> = (0..results.len())
+        .filter(|&i| results[i].map_from_cam.is_some() && book.frame_run[i].is_some())
+        .collect();
+    let mut out = Vec::new();
+    for w in posed.windows(2) {
+        let (i, j) = (w[0], w[1]);
+        if book.frame_run[i] == book.frame_run[j] {
+            continue;
+        }
+        let (Some(a), Some(b)) = (results[i].map_from_cam, results[j].map_from_cam) else {
+            continue;
+        };
+        let dt = (results[j].t - results[i].t).abs();
+        let jump_depths = (b.translation.vector - a.translation.vector).norm() / depth;
+        let rotation_rad = a.rotation.angle_to(&b.rotation);
+        let too_far = jump_depths > MAX_SPEED_DEPTHS_PER_S * dt + JUMP_ALLOWANCE_DEPTHS;
+        let too_turned = rotation_rad > MAX_ANGULAR_RATE_RAD_PER_S * dt + ROTATION_ALLOWANCE_RAD;
+        if too_far || too_turned {
+            out.push(Conflict {
+                before: i,
+                after: j,
+                jump_depths,
+                rotation_rad,
+            });
+        }
+    }
+    out
+}
+
+/// The runs to withdraw for `conflicts`: of two runs that cannot both be right, the one begun
+/// by a whole-map match when the other was begun on a place-recognition window; both when their
+/// starts are alike.
+pub fn runs_to_withdraw(conflicts: &[Conflict], book: &RunBook) -> BTreeSet<usize> {
+    let mut out = BTreeSet::new();
+    for c in conflicts {
+        let (Some(ra), Some(rb)) = (book.frame_run[c.before], book.frame_run[c.after]) else {
+            continue;
+        };
+        let (sa, sb) = (book.runs[ra].source, book.runs[rb].source);
+        use RelocalizationSource::{WholeMap, Window};
+        match (sa, sb) {
+            (WholeMap, Window) => {
+                out.insert(ra);
+            }
+            (Window, WholeMap) => {
+                out.insert(rb);
+            }
+            _ => {
+                out.insert(ra);
+                out.insert(rb);
+            }
+        }
+    }
+    out
+}
+
+/// Why the runs of a conflict are withdrawn: the meeting that showed them wrong.
+pub fn conflict_reason(
+    results: &[FrameLocalization],
+    book: &RunBook,
+    conflicts: &[Conflict],
+    run: usize,
+) -> String {
+    let start = book.runs[run];
+    let meeting = conflicts
+        .iter()
+        .find(|c| book.frame_run[c.before] == Some(run) || book.frame_run[c.after] == Some(run))
+        .map_or_else(String::new, |c| {
+            format!(
+                "; frames {} and {} are {:.2} map depths and {:.0}° apart in {:.3} s, farther \
+                 than a hand moves",
+                c.before,
+                c.after,
+                c.jump_depths,
+                c.rotation_rad.to_degrees(),
+                (results[c.after].t - results[c.before].t).abs()
+            )
+        });
+    format!(
+        "withdrawn: the run that began at frame {} ({}) does not join the stream's other \
+         poses{meeting} (a look-alike place in repeated texture)",
+        start.start,
+        start.source.describe()
+    )
+}
+
+/// Longest time across frames without a pose over which a pose can be said to join a withdrawn
+/// one (s): a few frame intervals, where the motion bound is still tighter than a pattern period.
+pub const MAX_JOIN_GAP_S: f64 = 0.2;
+/// Farthest a pose may be from a withdrawn one and still be said to join it (median depths):
+/// half the distance a look-alike one period away is seen at, whatever the time between them.
+pub const MAX_JOIN_DEPTHS: f64 = 0.25;
+
+/// Runs that agree with a withdrawn pose: a posed frame whose nearest frame with a pose or a
+/// withdrawn pose, on either side (or the frame itself), is a withdrawn one within
+/// [`MAX_JOIN_GAP_S`], within the motion a hand makes between them (at most
+/// [`MAX_JOIN_DEPTHS`]). A pose that joins a place shown to be a look-alike is at that
+/// look-alike too.
+pub fn runs_joining_withdrawn(
+    results: &[FrameLocalization],
+    book: &RunBook,
+    withdrawn: &[Option<Pose>],
+    depth: f64,
+) -> BTreeSet<usize> {
+    let n = results.len();
+    let joins = |i: usize, j: usize, p: &Pose| -> bool {
+        let Some(w) = withdrawn.get(j).copied().flatten() else {
+            return false;
+        };
+        let dt = (results[j].t - results[i].t).abs();
+        let jump = (p.translation.vector - w.translation.vector).norm() / depth;
+        let turn = p.rotation.angle_to(&w.rotation);
+        dt <= MAX_JOIN_GAP_S
+            && jump <= (MAX_SPEED_DEPTHS_PER_S * dt + JUMP_ALLOWANCE_DEPTHS).min(MAX_JOIN_DEPTHS)
+            && turn <= MAX_ANGULAR_RATE_RAD_PER_S * dt + ROTATION_ALLOWANCE_RAD
+    };
+    // The nearest frame from `i` along `step` that holds a pose or a withdrawn pose.
+    let nearest = |i: usize, forward: bool| -> Option<usize> {
+        let mut j = i;
+        loop {
+            j = if forward {
+                (j + 1 < n).then_some(j + 1)?
+            } else {
+                j.checked_sub(1)?
+            };
+            if results[j].map_from_cam.is_some() || withdrawn[j].is_some() {
+                return Some(j);
+            }
+        }
+    };
+    let mut out = BTreeSet::new();
+    for (i, r) in results.iter().enumerate() {
+        let (Some(p), Some(run)) = (r.map_from_cam, book.frame_run[i]) else {
+            continue;
+        };
+        let candidates = [Some(i), nearest(i, false), nearest(i, true)];
+        if candidates.into_iter().flatten().any(|j| joins(i, j, &p)) {
+            out.insert(run);
+        }
+    }
+    out
+}
+
+/// Withdraw every pose of `runs`: the frames become lost with the reason `why(run)` gives, and
+/// each withdrawn pose is kept in `withdrawn` (per frame). Returns how many frames were
+/// withdrawn.
+pub fn withdraw(
+    results: &mut [FrameLocalization],
+    book: &mut RunBook,
+    runs: &BTreeSet<usize>,
+    why: impl Fn(&[FrameLocalization], &RunBook, usize) -> String,
+    withdrawn: &mut [Option<Pose>],
+) -> usize {
+    let mut count = 0;
+    for &r in runs {
+        let reason = why(results, book, r);
+        for i in 0..results.len() {
+            if book.frame_run[i] != Some(r) {
+                continue;
+            }
+            if let Some(p) = results[i].map_from_cam {
+                withdrawn[i] = Some(p);
+                let inliers = results[i].inliers;
+                results[i] = FrameLocalization::lost(
+                    results[i].frame,
+                    results[i].t,
+                    inliers,
+                    reason.clone(),
+                );
+                count += 1;
+            }
+            book.frame_run[i] = None;
+        }
+    }
+    count
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::{Translation3, UnitQuaternion, Vector3};
+
+    const RATE: f64 = 30.0;
+
+    fn posed(i: usize, x: f64, status: LocalizationStatus) -> FrameLocalization {
+        FrameLocalization {
+            frame: i as u32,
+            t: i as f64 / RATE,
+            status,
+            map_from_cam: Some(Pose::from_parts(
+                Translation3::new(x, 0.0, 0.0),
+                UnitQuaternion::identity(),
+            )),
+            inliers: 60,
+            reason: String::new(),
+        }
+    }
+
+    /// Frames 0..n moving 1 cm a frame; run A covers `0..split`, run B `split..n`, and B's
+    /// poses are shifted by `offset` (map units, depth 1).
+    fn two_runs(
+        n: usize,
+        split: usize,
+        offset: f64,
+        a: RelocalizationSource,
+        b: RelocalizationSource,
+    ) -> (Vec<FrameLocalization>, RunBook) {
+        let mut book = RunBook::new(n);
+        let ra = book.open(0, a);
+        let rb = book.open(split, b);
+        let results = (0..n)
+            .map(|i| {
+                let shift = if i >= split { offset } else { 0.0 };
+                let status = if i == 0 || i == split {
+                    LocalizationStatus::Relocalized
+                } else {
+                    LocalizationStatus::Tracked
+                };
+                book.frame_run[i] = Some(if i < split { ra } else { rb });
+                posed(i, 0.01 * i as f64 + shift, status)
+            })
+            .collect();
+        (results, book)
+    }
+
+    #[test]
+    fn runs_that_join_smoothly_are_kept() {
+        use RelocalizationSource::{WholeMap, Window};
+        let (results, book) = two_runs(60, 30, 0.02, WholeMap, Window);
+        assert!(conflicts(&results, &book, 1.0).is_empty());
+    }
+
+    #[test]
+    fn a_whole_map_run_that_jumps_from_a_window_run_is_withdrawn() {
+        use RelocalizationSource::{WholeMap, Window};
+        let (mut results, mut book) = two_runs(60, 30, 0.9, WholeMap, Window);
+        let found = conflicts(&results, &book, 1.0);
+        assert_eq!(found.len(), 1);
+        assert_eq!((found[0].before, found[0].after), (29, 30));
+        assert!((found[0].jump_depths - 0.91).abs() < 1e-9);
+        let runs = runs_to_withdraw(&found, &book);
+        assert_eq!(runs, BTreeSet::from([0]));
+        let mut gone = vec![None; 60];
+        let why = |r: &[FrameLocalization], b: &RunBook, run| conflict_reason(r, b, &found, run);
+        assert_eq!(withdraw(&mut results, &mut book, &runs, why, &mut gone), 30);
+        assert!(gone[..30].iter().all(Option::is_some) && gone[30..].iter().all(Option::is_none));
+        assert!(
+            results[..30]
+                .iter()
+                .all(|r| r.status == LocalizationStatus::Lost
+                    && r.reason.starts_with("withdrawn")
+                    && r.reason.contains("whole-map"))
+        );
+        assert!(results[30..].iter().all(|r| r.map_from_cam.is_some()));
+        assert!(conflicts(&results, &book, 1.0).is_empty());
+    }
+
+    #[test]
+    fn runs_with_alike_starts_are_both_withdrawn() {
+        use RelocalizationSource::Window;
+        let (mut results, mut book) = two_runs(40, 10, -0.5, Window, Window);
+        let found = conflicts(&results, &book, 1.0);
+        let runs = runs_to_withdraw(&found, &book);
+        assert_eq!(runs, BTreeSet::from([0, 1]));
+        let mut gone = vec![None; 40];
+        let why = |r: &[FrameLocalization], b: &RunBook, run| conflict_reason(r, b, &found, run);
+        assert_eq!(withdraw(&mut results, &mut book, &runs, why, &mut gone), 40);
+    }
+
+    #[test]
+    fn a_run_that_joins_a_withdrawn_place_is_found() {
+        use RelocalizationSource::{WholeMap, Window};
+        let (mut results, mut book) = two_runs(60, 30, 0.9, WholeMap, Window);
+        let found = conflicts(&results, &book, 1.0);
+        let runs = runs_to_withdraw(&found, &book);
+        let mut gone = vec![None; 60];
+        let why = |r: &[FrameLocalization], b: &RunBook, run| conflict_reason(r, b, &found, run);
+        withdraw(&mut results, &mut book, &runs, why, &mut gone);
+        // Later, frames 0..5 are posed at the same place again and frames 10..20 elsewhere.
+        let again = book.open(5, WholeMap);
+        let other = book.open(20, Window);
+        for i in 0..5 {
+            results[i] = posed(i, 0.01 * i as f64 + 0.03, LocalizationStatus::Tracked);
+            book.frame_run[i] = Some(again);
+        }
+        for i in 10..20 {
+            results[i] = posed(i, 0.01 * i as f64 + 0.9, LocalizationStatus::Tracked);
+            book.frame_run[i] = Some(other);
+        }
+        assert_eq!(
+            runs_joining_withdrawn(&results, &book, &gone, 1.0),
+            BTreeSet::from([again])
+        );
+    }
+
+    #[test]
+    fn the_allowed_jump_grows_with_the_time_between_the_runs() {
+        use RelocalizationSource::{WholeMap, Window};
+        // 0.5 depths apart: a conflict across one frame interval, not across a second of lost
+        // frames (a hand can move that far in a second).
+        let (mut results, book) = two_runs(60, 40, 0.5, WholeMap, Window);
+        assert_eq!(conflicts(&results, &book, 1.0).len(), 1);
+        for r in &mut results[10..40] {
+            *r = FrameLocalization::lost(r.frame, r.t, 0, "lost".into());
+        }
+        assert!(conflicts(&results, &book, 1.0).is_empty());
+    }
+
+    #[test]
+    fn a_turn_no_wrist_makes_is_a_conflict() {
+        use RelocalizationSource::{WholeMap, Window};
+        let (mut results, book) = two_runs(20, 10, 0.0, WholeMap, Window);
+        let turned = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), 1.5);
+        if let Some(p) = results[10].map_from_cam.as_mut() {
+            p.rotation = turned;
+        }
+        let found = conflicts(&results, &book, 1.0);
+        assert_eq!(found.len(), 1);
+        assert!((found[0].rotation_rad - 1.5).abs() < 1e-9);
+    }
+}
