@@ -234,6 +234,9 @@ fn main() {
             .iter()
             .find(|r| r.status != LocalizationStatus::Lost)
             .map(|r| r.t - results[0].t);
+        let withdrawn = (results.iter())
+            .filter(|r| r.reason.starts_with("withdrawn"))
+            .count();
         let mut reasons: std::collections::BTreeMap<String, usize> = Default::default();
         for r in results
             .iter()
@@ -243,7 +246,7 @@ fn main() {
             *reasons.entry(key).or_default() += 1;
         }
         println!(
-            "[{tag}] query: {}/{} localized ({:.1} %: {} tracked, {} relocalized), first pose after {}, median {} inliers; error median {:.1} mm, worst {:.1} mm, {} over 5 cm; {:.1} s wall, {:.1} frames per CPU s",
+            "[{tag}] query: {}/{} localized ({:.1} %: {} tracked, {} relocalized), first pose after {}, median {} inliers; error median {:.1} mm, worst {:.1} mm, {} over 5 cm, {withdrawn} withdrawn; {:.1} s wall, {:.1} frames per CPU s",
             s.localized,
             s.frames,
             100.0 * s.localized_fraction,

@@ -498,62 +498,14 @@ pub fn localize_stream(
         .zip(results.first())
         .map(|(r, f)| r.t - f.t);
     let (mut attempts, mut attempt_s) = localizer.relocalization_cost();
-    let (back_attempts, back_s) = backfill(map, stream, options, &mut results, &mut book)?;
+    let (back_attempts, back_s) =
+        backfill(map, stream, options, &mut results, &mut book, |_| true)?;
     attempts += back_attempts;
     attempt_s += back_s;
-    // Runs that no hand-held motion joins: withdraw the one whose start rests on less, fill
-    // its frames again from the runs that stay, withdraw a refilled run that returns to a
-    // withdrawn place, and whatever still does not join.
-    let depth = localizer.map_depth();
-    let found = conflicts(&results, &book, depth);
-    if !found.is_empty() {
-        let mut gone = vec![None; n];
-        let runs = runs_to_withdraw(&found, &book);
-        let why = |r: &[FrameLocalization], b: &RunBook, run| conflict_reason(r, b, &found, run);
-        let mut withdrawn = withdraw(&mut results, &mut book, &runs, why, &mut gone);
-        // Once a whole-map match has fooled this stream, its frames are filled again only by
-        // tracking from the runs that stay and by place-recognition windows.
-        let fooled_whole_map = runs
-            .iter()
-            .any(|&r| book.runs[r].source == RelocalizationSource::WholeMap);
-        let refill = LocalizerOptions {
-            relocalization_map_candidates: if fooled_whole_map {
-                0
-            } else {
-                options.relocalization_map_candidates
-            },
-            ..*options
-        };
-        let (back_attempts, back_s) = backfill(map, stream, &refill, &mut results, &mut book)?;
-        attempts += back_attempts;
-        attempt_s += back_s;
-        // A run that joins a withdrawn pose is at the same look-alike; withdrawing it can show
-        // the next one (each round withdraws at least one run, so this ends).
-        loop {
-            let again = runs_joining_withdrawn(&results, &book, &gone, depth);
-            if again.is_empty() {
-                break;
-            }
-            let why_again = |_: &[FrameLocalization], b: &RunBook, run: usize| {
-                format!(
-                    "withdrawn: the run that began at frame {} ({}) joins poses withdrawn as a \
-                     look-alike place",
-                    b.runs[run].start,
-                    b.runs[run].source.describe()
-                )
-            };
-            withdrawn += withdraw(&mut results, &mut book, &again, why_again, &mut gone);
-        }
-        let left = conflicts(&results, &book, depth);
-        let runs = runs_to_withdraw(&left, &book);
-        let why = |r: &[FrameLocalization], b: &RunBook, run| conflict_reason(r, b, &left, run);
-        withdrawn += withdraw(&mut results, &mut book, &runs, why, &mut gone);
-        tracing::info!(
-            "{}/{}: {withdrawn} frames withdrawn from runs that do not join the stream",
-            stream.camera_name,
-            stream.lens
-        );
-    }
+    let (look_attempts, look_s) =
+        withdraw_look_alikes(map, stream, options, &localizer, &mut results, &mut book)?;
+    attempts += look_attempts;
+    attempt_s += look_s;
     let mut summary = summarize(&results, start.elapsed().as_secs_f64());
     summary.relocalization_attempts = attempts;
     summary.first_pose_after_s = first_pose_after_s;
@@ -564,6 +516,70 @@ pub fn localize_stream(
         0.0
     };
     Ok((results, summary))
+}
+
+/// Withdraw the runs that no hand-held motion joins ([`crate::vision::runs`]): the one whose
+/// start rests on less, then fill the withdrawn frames again backwards from the runs that stay
+/// (without whole-map matches once one has fooled the stream), withdraw refilled runs that join
+/// a withdrawn pose (the same look-alike), and whatever still does not join. Returns the
+/// refill's relocalization attempts and their wall time (s).
+fn withdraw_look_alikes(
+    map: &VisualMap,
+    stream: &LensStream,
+    options: &LocalizerOptions,
+    localizer: &Localizer,
+    results: &mut [FrameLocalization],
+    book: &mut RunBook,
+) -> Result<(usize, f64)> {
+    let depth = localizer.map_depth();
+    let found = conflicts(results, book, depth);
+    if found.is_empty() {
+        return Ok((0, 0.0));
+    }
+    let mut gone = vec![None; results.len()];
+    let runs = runs_to_withdraw(&found, book);
+    let why = |r: &[FrameLocalization], b: &RunBook, run| conflict_reason(r, b, &found, run);
+    let mut withdrawn = withdraw(results, book, &runs, why, &mut gone);
+    let fooled_whole_map = runs
+        .iter()
+        .any(|&r| book.runs[r].source == RelocalizationSource::WholeMap);
+    let refill = LocalizerOptions {
+        relocalization_map_candidates: if fooled_whole_map {
+            0
+        } else {
+            options.relocalization_map_candidates
+        },
+        ..*options
+    };
+    // Only the stretches that hold withdrawn frames: the others were tried already.
+    let cost = backfill(map, stream, &refill, results, book, |i| gone[i].is_some())?;
+    // Withdrawing a run can show the next one that joins it; each round withdraws at least one
+    // run, so this ends.
+    loop {
+        let again = runs_joining_withdrawn(results, book, &gone, depth);
+        if again.is_empty() {
+            break;
+        }
+        let why_again = |_: &[FrameLocalization], b: &RunBook, run: usize| {
+            format!(
+                "withdrawn: the run that began at frame {} ({}) joins poses withdrawn as a \
+                 look-alike place",
+                b.runs[run].start,
+                b.runs[run].source.describe()
+            )
+        };
+        withdrawn += withdraw(results, book, &again, why_again, &mut gone);
+    }
+    let left = conflicts(results, book, depth);
+    let runs = runs_to_withdraw(&left, book);
+    let why = |r: &[FrameLocalization], b: &RunBook, run| conflict_reason(r, b, &left, run);
+    withdrawn += withdraw(results, book, &runs, why, &mut gone);
+    tracing::info!(
+        "{}/{}: {withdrawn} frames withdrawn from runs that do not join the stream",
+        stream.camera_name,
+        stream.lens
+    );
+    Ok(cost)
 }
 
 /// A fresh localizer for a stream's lens, camera and mask.
@@ -592,15 +608,17 @@ const BACKFILL_LEAD: usize = 2;
 /// motion prior (a stream that starts, or resumes, where relocalization alone fails is often
 /// trackable from the other side). A frame lost again keeps its forward result and the pass
 /// goes on (the localizer relocalizes, at its own reduced rate after repeated failures); the
-/// same acceptance rules apply, so a filled frame is as trustworthy as any other. Sequential
-/// and seeded by frame index, so the result stays deterministic. Returns its relocalization
-/// attempts and their wall time (s).
+/// same acceptance rules apply, so a filled frame is as trustworthy as any other. Only lost
+/// stretches holding a frame `retry` accepts are tried. Sequential and seeded by frame index,
+/// so the result stays deterministic. Returns its relocalization attempts and their wall time
+/// (s).
 fn backfill(
     map: &VisualMap,
     stream: &LensStream,
     options: &LocalizerOptions,
     results: &mut [FrameLocalization],
     book: &mut RunBook,
+    retry: impl Fn(usize) -> bool,
 ) -> Result<(usize, f64)> {
     let n = results.len();
     let (mut attempts, mut seconds) = (0, 0.0);
@@ -612,7 +630,7 @@ fn backfill(
         while a > 0 && results[a - 1].status == LocalizationStatus::Lost {
             a -= 1;
         }
-        if a == b {
+        if a == b || !(a..b).any(&retry) {
             continue;
         }
         let mut localizer = stream_localizer(map, stream, options)?;

@@ -31,6 +31,16 @@ pub const MAX_ANGULAR_RATE_RAD_PER_S: f64 = 17.0;
 /// What localization noise may add to the rotation between two runs where they meet (rad, 10°).
 pub const ROTATION_ALLOWANCE_RAD: f64 = 0.175;
 
+/// How far apart two poses `dt` seconds apart are: camera-centre distance (median map depths)
+/// and rotation (rad).
+fn separation(a: &Pose, b: &Pose, dt: f64, depth: f64) -> (f64, f64, bool) {
+    let jump = (b.translation.vector - a.translation.vector).norm() / depth;
+    let turn = a.rotation.angle_to(&b.rotation);
+    let reachable = jump <= MAX_SPEED_DEPTHS_PER_S * dt + JUMP_ALLOWANCE_DEPTHS
+        && turn <= MAX_ANGULAR_RATE_RAD_PER_S * dt + ROTATION_ALLOWANCE_RAD;
+    (jump, turn, reachable)
+}
+
 /// How a run's first pose was found.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Run {
@@ -100,24 +110,18 @@ pub struct Conflict {
 /// whose orientations differ by more than the rotation bounds allow. `depth` is the map's median
 /// keyframe-to-landmark depth (map units).
 pub fn conflicts(results: &[FrameLocalization], book: &RunBook, depth: f64) -> Vec<Conflict> {
-    let posed: Vec<usize> = (0..results.len())
-        .filter(|&i| results[i].map_from_cam.is_some() && book.frame_run[i].is_some())
+    let posed: Vec<(usize, Pose, usize)> = (results.iter().zip(&book.frame_run).enumerate())
+        .filter_map(|(i, (r, run))| Some((i, r.map_from_cam?, (*run)?)))
         .collect();
     let mut out = Vec::new();
     for w in posed.windows(2) {
-        let (i, j) = (w[0], w[1]);
-        if book.frame_run[i] == book.frame_run[j] {
+        let ((i, a, run_a), (j, b, run_b)) = (w[0], w[1]);
+        if run_a == run_b {
             continue;
         }
-        let (Some(a), Some(b)) = (results[i].map_from_cam, results[j].map_from_cam) else {
-            continue;
-        };
         let dt = (results[j].t - results[i].t).abs();
-        let jump_depths = (b.translation.vector - a.translation.vector).norm() / depth;
-        let rotation_rad = a.rotation.angle_to(&b.rotation);
-        let too_far = jump_depths > MAX_SPEED_DEPTHS_PER_S * dt + JUMP_ALLOWANCE_DEPTHS;
-        let too_turned = rotation_rad > MAX_ANGULAR_RATE_RAD_PER_S * dt + ROTATION_ALLOWANCE_RAD;
-        if too_far || too_turned {
+        let (jump_depths, rotation_rad, reachable) = separation(&a, &b, dt, depth);
+        if !reachable {
             out.push(Conflict {
                 before: i,
                 after: j,
@@ -210,13 +214,10 @@ pub fn runs_joining_withdrawn(
             return false;
         };
         let dt = (results[j].t - results[i].t).abs();
-        let jump = (p.translation.vector - w.translation.vector).norm() / depth;
-        let turn = p.rotation.angle_to(&w.rotation);
-        dt <= MAX_JOIN_GAP_S
-            && jump <= (MAX_SPEED_DEPTHS_PER_S * dt + JUMP_ALLOWANCE_DEPTHS).min(MAX_JOIN_DEPTHS)
-            && turn <= MAX_ANGULAR_RATE_RAD_PER_S * dt + ROTATION_ALLOWANCE_RAD
+        let (jump, _, reachable) = separation(p, &w, dt, depth);
+        dt <= MAX_JOIN_GAP_S && reachable && jump <= MAX_JOIN_DEPTHS
     };
-    // The nearest frame from `i` along `step` that holds a pose or a withdrawn pose.
+    // The nearest frame from `i`, forwards or backwards, that holds a pose or a withdrawn pose.
     let nearest = |i: usize, forward: bool| -> Option<usize> {
         let mut j = i;
         loop {
