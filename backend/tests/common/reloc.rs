@@ -160,6 +160,13 @@ pub struct AttemptDiagnosis {
     /// [`CORRECT_MATCH_PX`] of their projection: the most inliers a right pose can have (the
     /// overlap of the view with the map).
     pub landmarks_observable: usize,
+    /// Descriptor distances of the correct matches that exist (per keypoint with a correct
+    /// landmark: the Hamming distance to the nearest descriptor of that landmark, its
+    /// representative or a keyframe view, and the rank of that landmark among all landmarks by
+    /// the same distance, 0 = nearest): how many are within the matcher's distance limit, how
+    /// many are the nearest landmark, how many among the nearest three; and the median distance
+    /// of the correct landmark and of the nearest other one.
+    pub correct_descriptors: DescriptorDiagnosis,
     /// The keyframe sharing the most visible landmarks with the query (the right candidate),
     /// its distance (m) and viewing angle (deg) to the query, and that count.
     pub best_keyframe: (usize, f64, f64, usize),
@@ -168,6 +175,30 @@ pub struct AttemptDiagnosis {
     /// window's landmarks, inliers, estimate error (m, if any), rejection.
     pub candidates: Vec<CandidateDiagnosis>,
 }
+
+/// How the descriptors of the correct matches that exist compare with the rest of the map.
+#[derive(Debug, Clone, Default)]
+pub struct DescriptorDiagnosis {
+    /// Keypoints with a correct landmark.
+    pub pairs: usize,
+    /// ... whose correct landmark is within the matcher's distance limit.
+    pub within_limit: usize,
+    /// ... whose correct landmark is the nearest landmark.
+    pub nearest: usize,
+    /// ... whose correct landmark is among the three nearest.
+    pub top3: usize,
+    /// Median distance to the correct landmark.
+    pub median_correct: u32,
+    /// Median distance to the nearest other landmark.
+    pub median_other: u32,
+    /// Keypoints with a landmark projection within reach when every projection is shifted by
+    /// [`CHANCE_SHIFT_PX`]: how many of `pairs` proximity alone gives.
+    pub by_chance: usize,
+}
+
+/// Shift of the projections (px, both axes) for the chance count of correct pairs: far beyond
+/// the reach of a correct pair, near enough to keep the same keypoint density.
+const CHANCE_SHIFT_PX: f64 = 15.0;
 
 /// One candidate of an attempt, against the truth.
 #[derive(Debug, Clone)]
@@ -255,6 +286,70 @@ pub fn diagnose_attempt(
             correct_possible += 1;
         }
     }
+    // Descriptor distances of the correct pairs (each keypoint against its nearest correct
+    // landmark in pixels).
+    let mut views: Vec<Vec<kiwi_backend::vision::features::Descriptor>> =
+        map.landmarks.iter().map(|l| vec![l.descriptor]).collect();
+    for kf in &map.keyframes {
+        for f in &kf.features {
+            if let Some(v) = f.landmark.and_then(|l| views.get_mut(l as usize)) {
+                v.push(f.descriptor);
+            }
+        }
+    }
+    let limit = options.matching.max_distance;
+    let mut diag = DescriptorDiagnosis::default();
+    let (mut dc, mut dother) = (Vec::new(), Vec::new());
+    for (i, kp) in kps.iter().enumerate() {
+        let Some(right) = projections
+            .iter()
+            .enumerate()
+            .filter_map(|(l, p)| p.map(|p| ((p - kp.pixel).norm(), l)))
+            .filter(|(d, _)| *d <= CORRECT_MATCH_PX)
+            .min_by(|a, b| a.0.total_cmp(&b.0))
+            .map(|(_, l)| l)
+        else {
+            continue;
+        };
+        let q = &trace.features.descriptors[i];
+        let dist: Vec<u32> = views
+            .iter()
+            .map(|v| v.iter().map(|d| d.distance(q)).min().unwrap_or(u32::MAX))
+            .collect();
+        let d_right = dist[right];
+        let rank = dist
+            .iter()
+            .enumerate()
+            .filter(|&(l, &d)| l != right && d < d_right)
+            .count();
+        let other = dist
+            .iter()
+            .enumerate()
+            .filter(|&(l, _)| l != right)
+            .map(|(_, &d)| d)
+            .min()
+            .unwrap_or(u32::MAX);
+        diag.pairs += 1;
+        diag.within_limit += usize::from(d_right <= limit);
+        diag.nearest += usize::from(rank == 0);
+        diag.top3 += usize::from(rank < 3);
+        dc.push(d_right);
+        dother.push(other);
+    }
+    let shift = nalgebra::Vector2::new(CHANCE_SHIFT_PX, CHANCE_SHIFT_PX);
+    diag.by_chance = kps
+        .iter()
+        .filter(|kp| {
+            projections
+                .iter()
+                .flatten()
+                .any(|p| (p + shift - kp.pixel).norm() <= CORRECT_MATCH_PX)
+        })
+        .count();
+    dc.sort_unstable();
+    dother.sort_unstable();
+    diag.median_correct = dc.get(dc.len() / 2).copied().unwrap_or(0);
+    diag.median_other = dother.get(dother.len() / 2).copied().unwrap_or(0);
     let landmarks_observable = projections
         .iter()
         .flatten()
@@ -322,6 +417,7 @@ pub fn diagnose_attempt(
         keypoints: kps.len(),
         correct_possible,
         landmarks_observable,
+        correct_descriptors: diag,
         best_keyframe: (best.1, bd, ba, best.0),
         candidates,
     }
@@ -340,6 +436,11 @@ pub fn describe_attempt(d: &AttemptDiagnosis) -> String {
         d.best_keyframe.2,
         d.best_keyframe.3
     );
+    let c = &d.correct_descriptors;
+    s.push_str(&format!(
+        "\n    correct pairs' descriptors: {} pairs ({} by proximity alone), {} within the limit, {} nearest, {} among the nearest 3; median distance {} (nearest other landmark {})",
+        c.pairs, c.by_chance, c.within_limit, c.nearest, c.top3, c.median_correct, c.median_other
+    ));
     for c in &d.candidates {
         s.push_str(&format!(
             "\n    kf {} ({:.2} m, {:.0}°, overlap rank {}): {} matches, {} correct, {} inliers, error {}, {}",
