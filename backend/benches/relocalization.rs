@@ -38,6 +38,7 @@ use common::reloc::{
 use kiwi_backend::vision::align::trajectory_error;
 use kiwi_backend::vision::episode::{LensStream, build_map_with_orb, localize_stream};
 use kiwi_backend::vision::localize::{LocalizationStatus, LocalizerOptions};
+use kiwi_backend::vision::runs::is_withdrawn;
 use kiwi_fixtures::scenario::Scenario;
 use kiwi_fixtures::scene::{RoomKind, Scene, SceneOptions};
 
@@ -234,9 +235,7 @@ fn main() {
             .iter()
             .find(|r| r.status != LocalizationStatus::Lost)
             .map(|r| r.t - results[0].t);
-        let withdrawn = (results.iter())
-            .filter(|r| r.reason.starts_with("withdrawn"))
-            .count();
+        let withdrawn = (results.iter()).filter(|f| is_withdrawn(f)).count();
         let mut reasons: std::collections::BTreeMap<String, usize> = Default::default();
         for r in results
             .iter()

@@ -35,6 +35,7 @@ use common::reloc::{Alignment, Take, pose_at, room_session, truth_poses};
 
 use kiwi_backend::vision::episode::{LensStream, build_map, localize_stream};
 use kiwi_backend::vision::localize::{LocalizationStatus, LocalizerOptions};
+use kiwi_backend::vision::runs::is_withdrawn;
 use kiwi_fixtures::scenario::Scenario;
 use kiwi_fixtures::scene::RoomKind;
 
@@ -238,9 +239,7 @@ fn a_look_alike_place_is_withdrawn_not_output() {
     let dir = tempfile::tempdir().unwrap();
     let r = localize_revisit(dir.path(), RoomKind::Kitchen, 7, "right/front");
     let over = r.errors.iter().filter(|&&x| x > MAX_ERROR_M).count();
-    let withdrawn = (r.results.iter())
-        .filter(|f| f.reason.starts_with("withdrawn"))
-        .count();
+    let withdrawn = (r.results.iter()).filter(|f| is_withdrawn(f)).count();
     eprintln!(
         "{}: {}/{} localized, {withdrawn} withdrawn, worst {:.1} mm, {over} over 5 cm",
         r.tag,

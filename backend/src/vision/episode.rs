@@ -502,8 +502,14 @@ pub fn localize_stream(
         backfill(map, stream, options, &mut results, &mut book, |_| true)?;
     attempts += back_attempts;
     attempt_s += back_s;
-    let (look_attempts, look_s) =
-        withdraw_look_alikes(map, stream, options, &localizer, &mut results, &mut book)?;
+    let (look_attempts, look_s) = withdraw_look_alikes(
+        map,
+        stream,
+        options,
+        localizer.map_depth(),
+        &mut results,
+        &mut book,
+    )?;
     attempts += look_attempts;
     attempt_s += look_s;
     let mut summary = summarize(&results, start.elapsed().as_secs_f64());
@@ -521,17 +527,17 @@ pub fn localize_stream(
 /// Withdraw the runs that no hand-held motion joins ([`crate::vision::runs`]): the one whose
 /// start rests on less, then fill the withdrawn frames again backwards from the runs that stay
 /// (without whole-map matches once one has fooled the stream), withdraw refilled runs that join
-/// a withdrawn pose (the same look-alike), and whatever still does not join. Returns the
-/// refill's relocalization attempts and their wall time (s).
+/// a withdrawn pose (the same look-alike), and whatever still does not join. `depth` is the
+/// map's median keyframe-to-landmark depth. Returns the refill's relocalization attempts and
+/// their wall time (s).
 fn withdraw_look_alikes(
     map: &VisualMap,
     stream: &LensStream,
     options: &LocalizerOptions,
-    localizer: &Localizer,
+    depth: f64,
     results: &mut [FrameLocalization],
     book: &mut RunBook,
 ) -> Result<(usize, f64)> {
-    let depth = localizer.map_depth();
     let found = conflicts(results, book, depth);
     if found.is_empty() {
         return Ok((0, 0.0));

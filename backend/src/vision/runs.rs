@@ -31,14 +31,32 @@ pub const MAX_ANGULAR_RATE_RAD_PER_S: f64 = 17.0;
 /// What localization noise may add to the rotation between two runs where they meet (rad, 10°).
 pub const ROTATION_ALLOWANCE_RAD: f64 = 0.175;
 
-/// How far apart two poses `dt` seconds apart are: camera-centre distance (median map depths)
-/// and rotation (rad).
-fn separation(a: &Pose, b: &Pose, dt: f64, depth: f64) -> (f64, f64, bool) {
-    let jump = (b.translation.vector - a.translation.vector).norm() / depth;
-    let turn = a.rotation.angle_to(&b.rotation);
-    let reachable = jump <= MAX_SPEED_DEPTHS_PER_S * dt + JUMP_ALLOWANCE_DEPTHS
-        && turn <= MAX_ANGULAR_RATE_RAD_PER_S * dt + ROTATION_ALLOWANCE_RAD;
-    (jump, turn, reachable)
+/// How far apart two poses are where two runs meet.
+#[derive(Debug, Clone, Copy)]
+struct Separation {
+    /// Camera-centre distance (median map depths).
+    jump_depths: f64,
+    /// Rotation between them (rad).
+    rotation_rad: f64,
+    /// Whether a hand-held camera covers both within the time between them.
+    reachable: bool,
+}
+
+/// The separation of two poses `dt` seconds apart in a map of median depth `depth`.
+fn separation(a: &Pose, b: &Pose, dt: f64, depth: f64) -> Separation {
+    let jump_depths = (b.translation.vector - a.translation.vector).norm() / depth;
+    let rotation_rad = a.rotation.angle_to(&b.rotation);
+    Separation {
+        jump_depths,
+        rotation_rad,
+        reachable: jump_depths <= MAX_SPEED_DEPTHS_PER_S * dt + JUMP_ALLOWANCE_DEPTHS
+            && rotation_rad <= MAX_ANGULAR_RATE_RAD_PER_S * dt + ROTATION_ALLOWANCE_RAD,
+    }
+}
+
+/// Whether a frame's pose was withdrawn by [`withdraw`] (its lost reason says so).
+pub fn is_withdrawn(frame: &FrameLocalization) -> bool {
+    frame.status == LocalizationStatus::Lost && frame.reason.starts_with("withdrawn")
 }
 
 /// How a run's first pose was found.
@@ -120,7 +138,11 @@ pub fn conflicts(results: &[FrameLocalization], book: &RunBook, depth: f64) -> V
             continue;
         }
         let dt = (results[j].t - results[i].t).abs();
-        let (jump_depths, rotation_rad, reachable) = separation(&a, &b, dt, depth);
+        let Separation {
+            jump_depths,
+            rotation_rad,
+            reachable,
+        } = separation(&a, &b, dt, depth);
         if !reachable {
             out.push(Conflict {
                 before: i,
@@ -214,8 +236,8 @@ pub fn runs_joining_withdrawn(
             return false;
         };
         let dt = (results[j].t - results[i].t).abs();
-        let (jump, _, reachable) = separation(p, &w, dt, depth);
-        dt <= MAX_JOIN_GAP_S && reachable && jump <= MAX_JOIN_DEPTHS
+        let sep = separation(p, &w, dt, depth);
+        dt <= MAX_JOIN_GAP_S && sep.reachable && sep.jump_depths <= MAX_JOIN_DEPTHS
     };
     // The nearest frame from `i`, forwards or backwards, that holds a pose or a withdrawn pose.
     let nearest = |i: usize, forward: bool| -> Option<usize> {
@@ -350,9 +372,7 @@ mod tests {
         assert!(
             results[..30]
                 .iter()
-                .all(|r| r.status == LocalizationStatus::Lost
-                    && r.reason.starts_with("withdrawn")
-                    && r.reason.contains("whole-map"))
+                .all(|r| is_withdrawn(r) && r.reason.contains("whole-map"))
         );
         assert!(results[30..].iter().all(|r| r.map_from_cam.is_some()));
         assert!(conflicts(&results, &book, 1.0).is_empty());

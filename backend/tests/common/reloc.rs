@@ -179,20 +179,18 @@ pub struct AttemptDiagnosis {
 /// How the descriptors of the correct matches that exist compare with the rest of the map.
 #[derive(Debug, Clone, Default)]
 pub struct DescriptorDiagnosis {
-    /// Keypoints with a correct landmark.
-    pub pairs: usize,
-    /// ... whose correct landmark is within the matcher's distance limit.
+    /// Of the keypoints with a correct landmark (`correct_possible`): those whose correct landmark is within the matcher's distance limit.
     pub within_limit: usize,
-    /// ... whose correct landmark is the nearest landmark.
+    /// ... those whose correct landmark is the nearest landmark.
     pub nearest: usize,
-    /// ... whose correct landmark is among the three nearest.
+    /// ... those whose correct landmark is among the three nearest.
     pub top3: usize,
     /// Median distance to the correct landmark.
     pub median_correct: u32,
     /// Median distance to the nearest other landmark.
     pub median_other: u32,
     /// Keypoints with a landmark projection within reach when every projection is shifted by
-    /// [`CHANCE_SHIFT_PX`]: how many of `pairs` proximity alone gives.
+    /// [`CHANCE_SHIFT_PX`]: how many of `correct_possible` proximity alone gives.
     pub by_chance: usize,
 }
 
@@ -275,19 +273,25 @@ pub fn diagnose_attempt(
     let correct_for = |kp: usize, l: u32| -> bool {
         projections[l as usize].is_some_and(|p| (p - kps[kp].pixel).norm() <= CORRECT_MATCH_PX)
     };
-    // Correct matches possible: keypoints with a visible landmark projection within reach.
-    let mut correct_possible = 0;
-    for kp in kps {
-        if projections
+    // Per keypoint, the visible landmark projecting nearest to it within reach (shifted by
+    // `shift`): with no shift, its correct landmark.
+    let nearest_within = |kp: &nalgebra::Point2<f64>, shift: nalgebra::Vector2<f64>| {
+        projections
             .iter()
-            .flatten()
-            .any(|p| (p - kp.pixel).norm() <= CORRECT_MATCH_PX)
-        {
-            correct_possible += 1;
-        }
-    }
-    // Descriptor distances of the correct pairs (each keypoint against its nearest correct
-    // landmark in pixels).
+            .enumerate()
+            .filter_map(|(l, p)| p.map(|p| ((p + shift - kp).norm(), l)))
+            .filter(|(d, _)| *d <= CORRECT_MATCH_PX)
+            .min_by(|a, b| a.0.total_cmp(&b.0))
+            .map(|(_, l)| l)
+    };
+    let right: Vec<Option<usize>> = kps
+        .iter()
+        .map(|kp| nearest_within(&kp.pixel, nalgebra::Vector2::zeros()))
+        .collect();
+    // Correct matches possible: keypoints with a visible landmark projection within reach.
+    let correct_possible = right.iter().flatten().count();
+    // Descriptor distances of the correct pairs: every landmark's descriptors (representative
+    // and keyframe views).
     let mut views: Vec<Vec<kiwi_backend::vision::features::Descriptor>> =
         map.landmarks.iter().map(|l| vec![l.descriptor]).collect();
     for kf in &map.keyframes {
@@ -300,15 +304,8 @@ pub fn diagnose_attempt(
     let limit = options.matching.max_distance;
     let mut diag = DescriptorDiagnosis::default();
     let (mut dc, mut dother) = (Vec::new(), Vec::new());
-    for (i, kp) in kps.iter().enumerate() {
-        let Some(right) = projections
-            .iter()
-            .enumerate()
-            .filter_map(|(l, p)| p.map(|p| ((p - kp.pixel).norm(), l)))
-            .filter(|(d, _)| *d <= CORRECT_MATCH_PX)
-            .min_by(|a, b| a.0.total_cmp(&b.0))
-            .map(|(_, l)| l)
-        else {
+    for (i, right) in right.iter().enumerate() {
+        let Some(right) = *right else {
             continue;
         };
         let q = &trace.features.descriptors[i];
@@ -317,19 +314,12 @@ pub fn diagnose_attempt(
             .map(|v| v.iter().map(|d| d.distance(q)).min().unwrap_or(u32::MAX))
             .collect();
         let d_right = dist[right];
-        let rank = dist
-            .iter()
-            .enumerate()
-            .filter(|&(l, &d)| l != right && d < d_right)
-            .count();
-        let other = dist
-            .iter()
-            .enumerate()
-            .filter(|&(l, _)| l != right)
-            .map(|(_, &d)| d)
-            .min()
-            .unwrap_or(u32::MAX);
-        diag.pairs += 1;
+        // Landmarks nearer than the right one, and the nearest other.
+        let (mut rank, mut other) = (0, u32::MAX);
+        for (_, &d) in dist.iter().enumerate().filter(|&(l, _)| l != right) {
+            rank += usize::from(d < d_right);
+            other = other.min(d);
+        }
         diag.within_limit += usize::from(d_right <= limit);
         diag.nearest += usize::from(rank == 0);
         diag.top3 += usize::from(rank < 3);
@@ -339,12 +329,7 @@ pub fn diagnose_attempt(
     let shift = nalgebra::Vector2::new(CHANCE_SHIFT_PX, CHANCE_SHIFT_PX);
     diag.by_chance = kps
         .iter()
-        .filter(|kp| {
-            projections
-                .iter()
-                .flatten()
-                .any(|p| (p + shift - kp.pixel).norm() <= CORRECT_MATCH_PX)
-        })
+        .filter(|kp| nearest_within(&kp.pixel, shift).is_some())
         .count();
     dc.sort_unstable();
     dother.sort_unstable();
@@ -439,7 +424,7 @@ pub fn describe_attempt(d: &AttemptDiagnosis) -> String {
     let c = &d.correct_descriptors;
     s.push_str(&format!(
         "\n    correct pairs' descriptors: {} pairs ({} by proximity alone), {} within the limit, {} nearest, {} among the nearest 3; median distance {} (nearest other landmark {})",
-        c.pairs, c.by_chance, c.within_limit, c.nearest, c.top3, c.median_correct, c.median_other
+        d.correct_possible, c.by_chance, c.within_limit, c.nearest, c.top3, c.median_correct, c.median_other
     ));
     for c in &d.candidates {
         s.push_str(&format!(
