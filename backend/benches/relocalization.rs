@@ -12,11 +12,13 @@
 //! `photos:1`), `KIWI_RELOC_RES` (px, default 640), `KIWI_RELOC_LENS` (`left/front`),
 //! `KIWI_RELOC_MAP` (`seconds@fps`, default `24@15`), `KIWI_RELOC_QUERY` (default `12@30`),
 //! `KIWI_RELOC_QUERY_GAIN` (lighting of the query, default 0.8), `KIWI_RELOC_DIR` (render the
-//! sessions once into this folder and reuse them), `KIWI_RELOC_DIAGNOSE` (frames, default 0),
+//! sessions once into this folder and reuse them), `KIWI_RELOC_DIAGNOSE` (frames, default 0;
+//! every `KIWI_RELOC_DIAGNOSE_STEP`-th of them, default 5),
 //! `KIWI_RELOC_BASELINE=1` (the localizer as it was before rectified descriptors: raw-image
 //! descriptors in map and query, a 45-inlier hypothesis, one view-blind densification round,
-//! relocalization every 4th frame after two failures, no view-support rule, no whole-map
-//! attempt), `KIWI_RELOC_MAP_CANDIDATES` (look-alike landmarks per keypoint of the whole-map
+//! relocalization every 4th frame after two failures, no view-support or uniqueness rule, no
+//! whole-map attempt), `KIWI_RELOC_MIN_UNIQUE` (unique inlier landmarks a relocalization
+//! needs; 0 turns the uniqueness rule off), `KIWI_RELOC_MAP_CANDIDATES` (look-alike landmarks per keypoint of the whole-map
 //! attempt; 0 turns it off), `KIWI_RELOC_MAP_ONLY=1` (build and check the maps, no query),
 //! `KIWI_RELOC_SERVE_UNTRUSTED=1` (localize even in a map its own check refused, to see what
 //! it would give), `KIWI_RELOC_MAP_ATTEMPTS` (whole-map attempts per lost run),
@@ -101,6 +103,10 @@ fn main() {
         query_gain,
     );
     let diagnose: usize = env("KIWI_RELOC_DIAGNOSE", "0").parse().unwrap();
+    let diagnose_step: usize = env("KIWI_RELOC_DIAGNOSE_STEP", "5")
+        .parse::<usize>()
+        .unwrap()
+        .max(1);
     let keep = std::env::var("KIWI_RELOC_DIR").ok();
     let tmp = tempfile::tempdir().unwrap();
     let root = keep
@@ -118,6 +124,7 @@ fn main() {
         options.relocalization_guided_rounds = 2;
         options.relocalization_eager_s = 0.0;
         options.min_view_support = 0.0;
+        options.min_unique_inliers = 0;
         options.relocalization_map_candidates = 0;
         options.relocalization_guided_keyframes = options.guided_keyframes;
         options.guided_views = false;
@@ -139,6 +146,9 @@ fn main() {
     }
     if env("KIWI_RELOC_DENSIFY_UNCERTAIN", "1") == "0" {
         options.densify_uncertain = false;
+    }
+    if let Ok(k) = std::env::var("KIWI_RELOC_MIN_UNIQUE") {
+        options.min_unique_inliers = k.parse().unwrap();
     }
     if let Ok(k) = std::env::var("KIWI_RELOC_MAP_ATTEMPTS") {
         options.relocalization_map_attempts = k.parse().unwrap();
@@ -287,7 +297,7 @@ fn main() {
         }
         if diagnose > 0 {
             let scene = Scene::new(seed, SceneOptions::room(kind));
-            for f in (0..diagnose.min(results.len())).step_by(5) {
+            for f in (0..diagnose.min(results.len())).step_by(diagnose_step) {
                 let d = diagnose_attempt(&map, &qstream, &alignment, &qtruth, &scene, f, &options);
                 println!("[{tag}] {}", describe_attempt(&d));
             }

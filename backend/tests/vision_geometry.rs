@@ -5,8 +5,8 @@
 
 use kiwi_backend::vision::geometry::{
     RansacOptions, RayObservation, TriangulationLimits, absolute_pose_position_std,
-    absolute_pose_ransac, angular_error, p3p, refine_absolute_pose, relative_pose_ransac,
-    tangent_basis, tangent_residual, triangulate,
+    absolute_pose_ransac, angular_error, dominant_plane, p3p, refine_absolute_pose,
+    relative_pose_ransac, tangent_basis, tangent_residual, triangulate,
 };
 use kiwi_core::geometry::{Pose, so3_exp};
 use nalgebra::{Point3, Translation3, Vector3};
@@ -451,4 +451,44 @@ fn absolute_pose_position_std_matches_monte_carlo_scatter() {
         )
         .is_none()
     );
+}
+
+#[test]
+fn dominant_plane_finds_the_floor_among_walls_and_clutter() {
+    // 60 points on a tilted floor with 5 mm noise, 30 on a wall, 30 scattered in the room:
+    // the floor is the dominant plane and holds exactly its own points at 2 cm.
+    let mut rng = ChaCha8Rng::seed_from_u64(41);
+    let normal = Vector3::new(0.1, -0.05, 1.0).normalize();
+    let offset = 0.3;
+    let mut points = Vec::new();
+    for _ in 0..60 {
+        let p = Vector3::new(
+            rng.random_range(-2.0..2.0),
+            rng.random_range(-2.0..2.0),
+            0.0,
+        );
+        let on = p - normal * (normal.dot(&p) - offset);
+        points.push(on + normal * rng.random_range(-0.005..0.005));
+    }
+    for _ in 0..30 {
+        points.push(Vector3::new(
+            2.5,
+            rng.random_range(-2.0..2.0),
+            rng.random_range(0.5..2.5),
+        ));
+    }
+    for _ in 0..30 {
+        points.push(Vector3::new(
+            rng.random_range(-2.0..2.0),
+            rng.random_range(-2.0..2.0),
+            rng.random_range(1.0..2.5),
+        ));
+    }
+    let (n, d, count) = dominant_plane(&points, 0.02).unwrap();
+    assert_eq!(count, 60, "floor points held");
+    let sign = n.dot(&normal).signum();
+    assert!((n * sign - normal).norm() < 0.02, "normal {n:?}");
+    assert!((d * sign - offset).abs() < 0.02, "offset {d}");
+    assert!(dominant_plane(&points[..2], 0.02).is_none());
+    assert_eq!(dominant_plane(&points, 0.02), dominant_plane(&points, 0.02));
 }

@@ -23,9 +23,9 @@
 //! part of the room the map never saw, papered with the same photos) in the table side's map:
 //! it must be reported lost, not placed. A fourth maps a texture-poor workshop whose map drifts
 //! (10 % of the path): the map's own check must refuse it and the query be lost, saying why.
-//! A fifth localizes a kitchen revisit whose first relocalization fits a look-alike place one
-//! pattern period away: that run must be withdrawn where it meets the right one, and no pose be
-//! output over 5 cm.
+//! A fifth localizes a kitchen revisit whose whole-map match fits a look-alike place one
+//! pattern period away: it must be refused at relocalization (the map repeats the view) or
+//! withdrawn where it meets the right run, and no pose be output over 5 cm.
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
 mod common;
@@ -34,7 +34,7 @@ use common::assert_lost_frames_say_why;
 use common::reloc::{Alignment, Take, pose_at, room_session, truth_poses};
 
 use kiwi_backend::vision::episode::{LensStream, build_map, localize_stream};
-use kiwi_backend::vision::localize::{LocalizationStatus, LocalizerOptions};
+use kiwi_backend::vision::localize::{LocalizationStatus, LocalizerOptions, is_refused_as_copy};
 use kiwi_backend::vision::runs::is_withdrawn;
 use kiwi_fixtures::scenario::Scenario;
 use kiwi_fixtures::scene::RoomKind;
@@ -230,26 +230,31 @@ fn every_room_kind_meets_the_relocalization_acceptance() {
 }
 
 #[test]
-fn a_look_alike_place_is_withdrawn_not_output() {
+fn a_look_alike_place_is_refused_or_withdrawn_not_output() {
     // Kitchen seed 7, right front lens: the revisit starts 0.7-0.9 m from the nearest keyframe
     // and 45-75° off its viewing direction, in a room of repeated tiles and photo copies. A
-    // whole-map match at frame 3 fits the view to the pattern one period away (0.93 m off) and
-    // tracking carries it on; without the runs' check, 97 frames were output over 5 cm. The
-    // run must be withdrawn where it meets the right one, saying why, and no pose be over 5 cm.
+    // whole-map match fits the view to the pattern one period away (0.93 m off), and tracking
+    // would carry it on: without the uniqueness rule and the runs' check, 97 frames were output
+    // over 5 cm. The look-alike must be refused at relocalization (the map repeats the view)
+    // or withdrawn where it meets the right run, saying why, and no pose be over 5 cm.
     let dir = tempfile::tempdir().unwrap();
     let r = localize_revisit(dir.path(), RoomKind::Kitchen, 7, "right/front");
     let over = r.errors.iter().filter(|&&x| x > MAX_ERROR_M).count();
     let withdrawn = (r.results.iter()).filter(|f| is_withdrawn(f)).count();
+    let refused = (r.results.iter()).filter(|f| is_refused_as_copy(f)).count();
     eprintln!(
-        "{}: {}/{} localized, {withdrawn} withdrawn, worst {:.1} mm, {over} over 5 cm",
+        "{}: {}/{} localized, {refused} refused as a copy, {withdrawn} withdrawn, worst {:.1} mm, {over} over 5 cm",
         r.tag,
         r.summary.localized,
         r.summary.frames,
         r.errors.last().map_or(f64::NAN, |x| x * 1e3)
     );
-    assert!(withdrawn > 0, "the look-alike run was not withdrawn");
+    assert!(
+        refused + withdrawn > 0,
+        "the look-alike was neither refused nor withdrawn"
+    );
     assert_eq!(over, 0, "accepted poses over 5 cm");
-    assert!(r.summary.localized > 0, "the right run was withdrawn too");
+    assert!(r.summary.localized > 0, "the right place was refused too");
 }
 
 #[test]

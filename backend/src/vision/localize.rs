@@ -26,8 +26,10 @@
 //!    (square root of the middle eigenvalue of their covariance at least `min_spread_rad`), and
 //!    the position's uncertainty (`max_position_std`); a relocalized pose must in addition be
 //!    supported across the view the map predicts (`min_view_support`: a pose fitted to one copy
-//!    of a repeated photo explains that photo only), so that a pose resting on a small cluster,
-//!    a coincidental minority or a repeated pattern is reported lost rather than output.
+//!    of a repeated photo explains that photo only) and rest on landmarks the map does not
+//!    repeat elsewhere (`min_unique_inliers`: tiles and wallpaper whose periods nearly agree
+//!    make a whole view match one period away), so that a pose resting on a small cluster, a
+//!    coincidental minority or a repeated pattern is reported lost rather than output.
 //!
 //! Determinism: RANSAC seeds derive from the frame index, OpenCV's ORB and KLT are
 //! deterministic, candidates and matches are ordered; one episode runs sequentially, so the
@@ -36,6 +38,7 @@
 use std::collections::BTreeSet;
 
 use nalgebra::{Matrix3, Point2, Point3, Vector3};
+use rayon::prelude::*;
 
 use kiwi_core::camera::{Camera, CameraModel};
 use kiwi_core::geometry::Pose;
@@ -47,7 +50,7 @@ use crate::vision::features::{
     match_descriptor_groups_ambiguous, track_klt_pyramids,
 };
 use crate::vision::geometry::{
-    RansacOptions, absolute_pose_position_std, absolute_pose_ransac, angular_error,
+    RansacOptions, absolute_pose_position_std, absolute_pose_ransac, angular_error, dominant_plane,
 };
 use crate::vision::map::VisualMap;
 use crate::vision::place::KeyframeDatabase;
@@ -164,6 +167,11 @@ pub struct LocalizerOptions {
     /// After `relocalization_map_attempts`, one attempt in this many is still a whole-map one
     /// (a repeated-texture room may need it long into a lost run; 0 or 1: every attempt).
     pub relocalization_map_interval: usize,
+    /// A relocalized pose must rest on at least this many inlier landmarks that the map does
+    /// not repeat elsewhere (see `RepeatedEvidence`): in a room whose tiles, wallpaper and
+    /// doors repeat with nearly common periods, a view matches the same pattern a period away
+    /// as well as here (0: no uniqueness test).
+    pub min_unique_inliers: usize,
     /// See `min_view_support`.
     pub support_grid: u32,
     /// See `min_view_support`.
@@ -274,6 +282,9 @@ impl Default for LocalizerOptions {
             // One whole-map attempt costs about four window attempts: past the first ten, at
             // most half of a long lost run's relocalization time goes to the whole map.
             relocalization_map_interval: 4,
+            // A hypothesis's worth: on the held-out kitchens, poses one pattern period off had
+            // 0-4 inlier landmarks outside the map's copies, right ones 31-55.
+            min_unique_inliers: 12,
             // 8 × 8 cells of 120 px at 960 px: a photo or a tile panel covers a few of them.
             support_grid: 8,
             // A cell with fewer predicted landmarks is too thin to expect an inlier in.
@@ -401,6 +412,33 @@ pub fn median_keyframe_depth(map: &VisualMap) -> Option<f64> {
 /// ~8 % right matches a right model has ~4 inliers among 60, a wrong one rarely 2.
 const WHOLE_MAP_PREVERIFY: usize = 60;
 
+/// Largest distance of a landmark from a plane it lies on, as a fraction of the map's median
+/// depth (1 % of a room's ~3 m is 3 cm: a floor or a wall, not a box on it).
+const PLANE_TOLERANCE: f64 = 0.01;
+
+/// How a relocalization refused by the uniqueness rule (`min_unique_inliers`) begins its reason.
+pub const REPEATED_VIEW: &str = "the map repeats this view elsewhere";
+
+/// Whether a frame was lost because its best relocalization rested on a pattern the map repeats
+/// elsewhere (its reason says so).
+pub fn is_refused_as_copy(frame: &FrameLocalization) -> bool {
+    frame.status == LocalizationStatus::Lost && frame.reason.contains(REPEATED_VIEW)
+}
+
+/// Shortest translational copy the uniqueness test looks for, as a fraction of the map's median
+/// depth (5 % of ~3 m: beyond the error of a pose the acceptance rules let through).
+const COPY_MIN_SHIFT: f64 = 0.05;
+
+/// Fewest inlier landmarks sharing a shift for it to count as a copy: chance look-alikes
+/// (the nearest other landmark of a kitchen keypoint is ~48 bits away) scatter over the whole
+/// room's shifts, a handful per tolerance cell at most.
+const COPY_MIN_SUPPORT: usize = 8;
+
+/// Tolerance of a copy's shift, as a fraction of the map's median depth (1.5 % of ~3 m is
+/// 4.5 cm: landmark error plus periods that agree only nearly, such as a 0.31 m floor tile
+/// and a 0.24 m wallpaper motif over 0.9 m).
+const COPY_TOLERANCE: f64 = 0.015;
+
 /// A keypoint's pixel as an exact key (keypoints are told apart by position).
 fn pixel_key(p: &Point2<f64>) -> (u64, u64) {
     (p.x.to_bits(), p.y.to_bits())
@@ -420,8 +458,27 @@ pub struct CandidateTrace {
     pub inliers: usize,
     /// The final estimate, if RANSAC found one.
     pub cam_from_map: Option<Pose>,
+    /// Landmarks of the final estimate's inliers.
+    pub inlier_landmarks: Vec<u32>,
+    /// Share of those landmarks on their dominant plane (0 without an estimate).
+    pub plane_share: f64,
+    /// How much of the estimate's evidence the map repeats elsewhere (without an estimate:
+    /// the default, nothing).
+    pub repeated: RepeatedEvidence,
     /// Empty when accepted, else why not.
     pub rejection: String,
+}
+
+/// How much of a pose's evidence the map repeats elsewhere (see the uniqueness rule of
+/// relocalization).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct RepeatedEvidence {
+    /// Distinct inlier landmarks.
+    pub landmarks: usize,
+    /// Of those, the ones in a translational copy the map holds elsewhere.
+    pub repeated: usize,
+    /// The copy shared by the most inlier landmarks: its shift (map units) and that count.
+    pub strongest: Option<(Vector3<f64>, usize)>,
 }
 
 /// What one relocalization attempt saw: the query's features and every candidate tried.
@@ -825,6 +882,41 @@ impl Localizer {
             ));
         }
         Ok(())
+    }
+
+    /// Share of an estimate's inlier landmarks on their dominant plane (within
+    /// [`PLANE_TOLERANCE`] of the map's median depth).
+    fn plane_share(&self, e: &Estimate) -> f64 {
+        let points: Vec<Vector3<f64>> = e
+            .inliers
+            .iter()
+            .map(|c| self.positions[c.landmark as usize])
+            .collect();
+        dominant_plane(&points, PLANE_TOLERANCE * self.map_depth)
+            .map_or(0.0, |(_, _, k)| k as f64 / points.len() as f64)
+    }
+
+    /// The uniqueness rule of relocalization (`min_unique_inliers`).
+    fn check_unique(&self, e: &Estimate) -> std::result::Result<(), String> {
+        if self.options.min_unique_inliers == 0 {
+            return Ok(());
+        }
+        let r = self.repeated_evidence(e);
+        let unique = r.landmarks - r.repeated;
+        if unique >= self.options.min_unique_inliers {
+            return Ok(());
+        }
+        let strongest = r.strongest.map_or(String::new(), |(d, k)| {
+            format!(
+                "; the strongest copy, {k} of them, lies {:.0} % of the map's median depth away",
+                100.0 * d.norm() / self.map_depth
+            )
+        });
+        Err(format!(
+            "{REPEATED_VIEW}: {} of {} inlier landmarks have a look-alike in a copy of the \
+             pattern, {unique} unique < {}{strongest}",
+            r.repeated, r.landmarks, self.options.min_unique_inliers
+        ))
     }
 
     /// The position's uncertainty against `max_position_std`.
@@ -1592,6 +1684,148 @@ impl Localizer {
         Ok(e)
     }
 
+    /// Guided densification from a pose alone (no descriptor hypothesis): the landmarks of the
+    /// keyframes viewing the pose best are projected and matched around their projections,
+    /// RANSAC fits a pose, and the rounds repeat from it while the support grows.
+    fn densify_from_pose(
+        &self,
+        frame: u32,
+        salt: u64,
+        cam_from_map: &Pose,
+        feats: &FrameFeatures,
+        grid: &KeypointGrid,
+    ) -> std::result::Result<Estimate, String> {
+        let hypothesis_min = self
+            .options
+            .relocalization_hypothesis_inliers
+            .clamp(4, self.options.min_inliers_relocalization);
+        let mut pose = *cam_from_map;
+        let mut best: Option<Estimate> = None;
+        for round in 0..self.options.relocalization_guided_rounds.max(1) {
+            let landmarks =
+                self.viewing_landmarks(&pose, self.options.relocalization_guided_keyframes);
+            let guided = self.guided_matches(&pose, &landmarks, feats, grid);
+            let ransac = self.ransac(frame, salt + round as u64, hypothesis_min);
+            match self.estimate(&guided, &ransac) {
+                Ok(g)
+                    if best
+                        .as_ref()
+                        .is_none_or(|b| g.inliers.len() > b.inliers.len()) =>
+                {
+                    pose = g.cam_from_map;
+                    best = Some(g);
+                }
+                Ok(_) => break,
+                Err(why) => {
+                    if best.is_none() {
+                        return Err(why);
+                    }
+                    break;
+                }
+            }
+        }
+        best.ok_or_else(|| "no guided densification round".to_string())
+    }
+
+    /// Inliers and pose of guided densification from `cam_from_map` on a traced frame's
+    /// features (see [`Self::trace_relocalization`]): how much of the view the map explains
+    /// around a given pose, e.g. the true one in a diagnosis.
+    pub fn support_at(
+        &self,
+        frame: u32,
+        features: &FrameFeatures,
+        cam_from_map: &Pose,
+    ) -> Option<(usize, Pose)> {
+        let grid = KeypointGrid::new(&features.keypoints, self.options.guided_radius_px);
+        self.densify_from_pose(frame, 64, cam_from_map, features, &grid)
+            .ok()
+            .map(|e| (e.inliers.len(), e.cam_from_map))
+    }
+
+    /// How much of an estimate's evidence the map repeats elsewhere. For every inlier landmark
+    /// `l`, the map landmarks at least [`COPY_MIN_SHIFT`] of the map depth away whose
+    /// descriptors, some view against some view, are within the guided-matching limit give a
+    /// shift `d = X_l' - X_l`; a shift (within [`COPY_TOLERANCE`] of the map depth) that at
+    /// least [`COPY_MIN_SUPPORT`] inlier landmarks share is a translational copy of that part
+    /// of the view (a tiled floor, a papered wall, a row of identical doors). The inliers in
+    /// no copy are the pose's unique evidence: a pose that rests on copies alone is as good one
+    /// period away, and when the periods of two surfaces nearly agree the whole view repeats.
+    fn repeated_evidence(&self, e: &Estimate) -> RepeatedEvidence {
+        let min_shift = COPY_MIN_SHIFT * self.map_depth;
+        let tolerance = COPY_TOLERANCE * self.map_depth;
+        let limit = self.options.guided_max_distance;
+        // The localizer holds OpenCV handles and is not `Sync`: the parallel search borrows
+        // only the map's arrays.
+        let (positions, descriptors, landmark_views) =
+            (&self.positions, &self.descriptors, &self.landmark_views);
+        let views =
+            move |l: usize| std::iter::once(&descriptors[l]).chain(landmark_views[l].iter());
+        let mut inlier_landmarks: Vec<u32> = e.inliers.iter().map(|c| c.landmark).collect();
+        inlier_landmarks.sort_unstable();
+        inlier_landmarks.dedup();
+        type Cell = (i64, i64, i64);
+        let cell_of = |d: &Vector3<f64>| -> Cell {
+            (
+                (d.x / tolerance).round() as i64,
+                (d.y / tolerance).round() as i64,
+                (d.z / tolerance).round() as i64,
+            )
+        };
+        // (shift cell, inlier landmark) of every look-alike pair.
+        let mut votes: Vec<(Cell, u32)> = inlier_landmarks
+            .par_iter()
+            .flat_map_iter(|&l| {
+                let x = positions[l as usize];
+                positions
+                    .iter()
+                    .enumerate()
+                    .filter(move |(_, y)| (*y - x).norm() >= min_shift)
+                    .filter(move |&(other, _)| {
+                        views(l as usize).any(|a| views(other).any(|b| a.distance(b) <= limit))
+                    })
+                    .map(move |(_, y)| (cell_of(&(y - x)), l))
+            })
+            .collect();
+        votes.sort_unstable();
+        votes.dedup();
+        // Support of a cell: distinct inlier landmarks voting in it or its 26 neighbours.
+        let mut cells: Vec<Cell> = votes.iter().map(|v| v.0).collect();
+        cells.dedup();
+        let mut repeated: BTreeSet<u32> = BTreeSet::new();
+        let mut strongest: Option<(Cell, usize)> = None;
+        let mut members: Vec<u32> = Vec::new();
+        for &c in &cells {
+            members.clear();
+            for dx in -1..=1 {
+                for dy in -1..=1 {
+                    for dz in -1..=1 {
+                        let n = (c.0 + dx, c.1 + dy, c.2 + dz);
+                        let lo = votes.partition_point(|v| v.0 < n);
+                        members.extend(votes[lo..].iter().take_while(|v| v.0 == n).map(|v| v.1));
+                    }
+                }
+            }
+            members.sort_unstable();
+            members.dedup();
+            if members.len() >= COPY_MIN_SUPPORT {
+                repeated.extend(members.iter().copied());
+            }
+            if strongest.is_none_or(|(_, k)| members.len() > k) {
+                strongest = Some((c, members.len()));
+            }
+        }
+        RepeatedEvidence {
+            landmarks: inlier_landmarks.len(),
+            repeated: repeated.len(),
+            strongest: strongest.map(|(c, k)| {
+                (
+                    Vector3::new(c.0 as f64, c.1 as f64, c.2 as f64) * tolerance,
+                    k,
+                )
+            }),
+        }
+    }
+
     /// Apply the acceptance rules to one candidate's estimate, trace it, and keep the best.
     #[allow(clippy::too_many_arguments)]
     fn judge_candidate(
@@ -1605,9 +1839,23 @@ impl Localizer {
         last_reason: &mut String,
     ) {
         let verdict = match &attempt {
-            Ok(e) => self
-                .accept(e, self.options.min_inliers_relocalization)
-                .and_then(|()| self.check_view_support(e, feats)),
+            Ok(e) => {
+                // The uniqueness rule is the dearest: only a candidate that would replace the
+                // best is put to it (every one when traced).
+                let contends = trace.is_some()
+                    || best
+                        .as_ref()
+                        .is_none_or(|b| e.inliers.len() > b.inliers.len());
+                self.accept(e, self.options.min_inliers_relocalization)
+                    .and_then(|()| self.check_view_support(e, feats))
+                    .and_then(|()| {
+                        if contends {
+                            self.check_unique(e)
+                        } else {
+                            Ok(())
+                        }
+                    })
+            }
             Err(why) => Err(why.clone()),
         };
         if let Some(t) = trace {
@@ -1628,6 +1876,15 @@ impl Localizer {
                 matches: matches.iter().map(|m| (m.query, m.train as u32)).collect(),
                 inliers: attempt.as_ref().map_or(0, |e| e.inliers.len()),
                 cam_from_map: attempt.as_ref().ok().map(|e| e.cam_from_map),
+                inlier_landmarks: attempt.as_ref().map_or_else(
+                    |_| Vec::new(),
+                    |e| e.inliers.iter().map(|c| c.landmark).collect(),
+                ),
+                plane_share: attempt.as_ref().map_or(0.0, |e| self.plane_share(e)),
+                repeated: attempt.as_ref().map_or_else(
+                    |_| RepeatedEvidence::default(),
+                    |e| self.repeated_evidence(e),
+                ),
                 rejection: verdict.clone().err().unwrap_or_default(),
             });
         }
@@ -1641,9 +1898,13 @@ impl Localizer {
                 }
             }
             (attempt, verdict) => {
-                if let Ok(e) = attempt {
-                    *best_rejected = (*best_rejected).max(e.inliers.len());
+                // The frame reports the reason of its strongest refused candidate (a pose
+                // refused as a copy says more than a window that gave no pose at all).
+                let inliers = attempt.as_ref().map_or(0, |e| e.inliers.len());
+                if inliers < *best_rejected && !last_reason.is_empty() {
+                    return;
                 }
+                *best_rejected = inliers;
                 let why = verdict.err().unwrap_or_default();
                 *last_reason = match candidate {
                     Some((k, _)) => format!("keyframe {k}: {why}"),

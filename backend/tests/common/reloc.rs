@@ -170,6 +170,9 @@ pub struct AttemptDiagnosis {
     /// The keyframe sharing the most visible landmarks with the query (the right candidate),
     /// its distance (m) and viewing angle (deg) to the query, and that count.
     pub best_keyframe: (usize, f64, f64, usize),
+    /// Guided densification from the true pose: inliers and the position error (m) of the pose
+    /// it fits (`None` when it fits none): the support a right hypothesis would reach.
+    pub true_support: Option<(usize, f64)>,
     /// Per candidate tried: keyframe, distance (m), angle (deg), its rank by shared visible
     /// landmarks (0 = the best), matches found, correct among them, correct possible within its
     /// window's landmarks, inliers, estimate error (m, if any), rejection.
@@ -194,6 +197,9 @@ pub struct DescriptorDiagnosis {
     pub by_chance: usize,
 }
 
+/// Height above the floor (m) within which a landmark counts as on it (map error).
+const FLOOR_BAND_M: f64 = 0.02;
+
 /// Shift of the projections (px, both axes) for the chance count of correct pairs: far beyond
 /// the reach of a correct pair, near enough to keep the same keypoint density.
 const CHANCE_SHIFT_PX: f64 = 15.0;
@@ -217,6 +223,17 @@ pub struct CandidateDiagnosis {
     pub inliers: usize,
     /// Position error of its estimate (m), if any.
     pub error_m: Option<f64>,
+    /// Share of its inliers' landmarks on their dominant plane (the localizer's figure).
+    pub plane_share: f64,
+    /// Share of its inliers' landmarks on the floor (within [`FLOOR_BAND_M`] of it, truth).
+    pub floor_share: f64,
+    /// The map's strongest translational copy of its inliers (world shift, m; inlier landmarks
+    /// with a look-alike there).
+    pub repeated_shift: Option<(Vector3<f64>, usize)>,
+    /// Inlier landmarks, and of those the ones in some copy.
+    pub repeated: (usize, usize),
+    /// Truth centre minus the estimate's centre (world, m).
+    pub offset: Option<Vector3<f64>>,
     /// Empty when accepted.
     pub rejection: String,
 }
@@ -393,11 +410,39 @@ pub fn diagnose_attempt(
                 error_m: c.cam_from_map.map(|p| {
                     (alignment.world_from_cam(&p.inverse()).translation.vector - origin).norm()
                 }),
+                plane_share: c.plane_share,
+                repeated: (c.repeated.landmarks, c.repeated.repeated),
+                repeated_shift: c
+                    .repeated
+                    .strongest
+                    .map(|(d, k)| (alignment.sim.rotation * d * alignment.sim.scale, k)),
+                offset: c
+                    .cam_from_map
+                    .map(|p| origin - alignment.world_from_cam(&p.inverse()).translation.vector),
+                floor_share: c
+                    .inlier_landmarks
+                    .iter()
+                    .filter(|&&l| {
+                        let w = alignment
+                            .world_point(&Vector3::from(map.landmarks[l as usize].position));
+                        w.z.abs() <= FLOOR_BAND_M
+                    })
+                    .count() as f64
+                    / c.inlier_landmarks.len().max(1) as f64,
                 rejection: c.rejection.clone(),
             }
         })
         .collect();
+    let true_support = localizer
+        .support_at(frame as u32, &trace.features, &cam_from_map)
+        .map(|(n, p)| {
+            (
+                n,
+                (alignment.world_from_cam(&p.inverse()).translation.vector - origin).norm(),
+            )
+        });
     AttemptDiagnosis {
+        true_support,
         frame,
         keypoints: kps.len(),
         correct_possible,
@@ -426,9 +471,15 @@ pub fn describe_attempt(d: &AttemptDiagnosis) -> String {
         "\n    correct pairs' descriptors: {} pairs ({} by proximity alone), {} within the limit, {} nearest, {} among the nearest 3; median distance {} (nearest other landmark {})",
         d.correct_possible, c.by_chance, c.within_limit, c.nearest, c.top3, c.median_correct, c.median_other
     ));
+    s.push_str(&match d.true_support {
+        Some((n, e)) => {
+            format!("\n    guided densification from the true pose: {n} inliers, error {e:.3} m")
+        }
+        None => "\n    guided densification from the true pose: no pose".to_string(),
+    });
     for c in &d.candidates {
         s.push_str(&format!(
-            "\n    kf {} ({:.2} m, {:.0}°, overlap rank {}): {} matches, {} correct, {} inliers, error {}, {}",
+            "\n    kf {} ({:.2} m, {:.0}°, overlap rank {}): {} matches, {} correct, {} inliers ({:.0} % on one plane, {:.0} % on the floor), error {}, {}",
             c.keyframe,
             c.distance_m,
             c.angle_deg,
@@ -436,9 +487,23 @@ pub fn describe_attempt(d: &AttemptDiagnosis) -> String {
             c.matches,
             c.correct,
             c.inliers,
+            100.0 * c.plane_share,
+            100.0 * c.floor_share,
             c.error_m.map_or("-".into(), |e| format!("{e:.3} m")),
             if c.rejection.is_empty() { "accepted" } else { &c.rejection }
         ));
+        if let Some((d, k)) = c.repeated_shift {
+            s.push_str(&format!(
+                "; {} of {} inlier landmarks repeated, strongest copy at ({:.2}, {:.2}, {:.2}) m for {k}",
+                c.repeated.1, c.repeated.0, d.x, d.y, d.z
+            ));
+        }
+        if let Some(o) = c.offset {
+            s.push_str(&format!(
+                "; truth at ({:.2}, {:.2}, {:.2}) m",
+                o.x, o.y, o.z
+            ));
+        }
     }
     s
 }
