@@ -18,7 +18,10 @@
 //! in `make test` (~5 min wall; it fails on the workshop only: its 320 px maps drift, 2.3 % off
 //! forward against reversed, and are refused by their own check, so its queries are lost; the
 //! other eight cases are 100 % localized from the first frame, worst 31 mm; see
-//! docs/vision.md). A third test localizes a sweep beyond the divided room's partition (a
+//! docs/vision.md). `kitchens_at_480_px_meet_the_relocalization_acceptance`, also ignored
+//! (~6 min), runs four held-out kitchens at 480 px, where their tiles and doors are resolved:
+//! none places a pose over 5 cm, one meets the whole acceptance (kitchen 15 is fully
+//! localized but finds the map after 2.5 s; kitchens 7 and 12 are 50-54 % localized). A third test localizes a sweep beyond the divided room's partition (a
 //! part of the room the map never saw, papered with the same photos) in the table side's map:
 //! it must be reported lost, not placed. A fourth maps a texture-poor workshop whose map drifts
 //! (10 % of the path): the map's own check must refuse it and the query be lost, saying why.
@@ -38,7 +41,10 @@ use kiwi_backend::vision::runs::is_withdrawn;
 use kiwi_fixtures::scenario::Scenario;
 use kiwi_fixtures::scene::RoomKind;
 
+/// Image size of the ten rooms (px).
 const RESOLUTION: u32 = 320;
+/// Image size at which the kitchens' tiles, wallpaper and doors are resolved (px).
+const KITCHEN_RESOLUTION: u32 = 480;
 const SCAN: Take = Take {
     scenario: Scenario::Scan,
     seconds: 12.0,
@@ -81,6 +87,14 @@ const PASSING: [(RoomKind, u64, &str); 4] = [
     (RoomKind::Kitchen, 2, "right/rear"),
 ];
 
+/// Held-out kitchens at [`KITCHEN_RESOLUTION`] (none of them tuned on).
+const KITCHENS: [(RoomKind, u64, &str); 4] = [
+    (RoomKind::Kitchen, 11, "left/front"),
+    (RoomKind::Kitchen, 15, "left/front"),
+    (RoomKind::Kitchen, 7, "right/front"),
+    (RoomKind::Kitchen, 12, "left/front"),
+];
+
 /// A revisit localized in its scan's map, with each posed frame's error against the truth.
 struct Revisit {
     tag: String,
@@ -92,15 +106,25 @@ struct Revisit {
 }
 
 /// Map the scan of one room, seed and lens, and localize the revisit's stream of that lens in it.
-fn localize_revisit(root: &std::path::Path, room: RoomKind, seed: u64, lens_spec: &str) -> Revisit {
+fn localize_revisit(
+    root: &std::path::Path,
+    room: RoomKind,
+    seed: u64,
+    lens_spec: &str,
+    resolution: u32,
+) -> Revisit {
     let (camera, lens) = lens_spec.split_once('/').unwrap();
-    let tag = format!("{}-{seed}-{}", room.name(), lens_spec.replace('/', "-"));
+    let tag = format!(
+        "{}-{seed}-{}-{resolution}",
+        room.name(),
+        lens_spec.replace('/', "-")
+    );
     let mapping = room_session(
         root,
         &format!("{tag}-scan"),
         room,
         seed,
-        RESOLUTION,
+        resolution,
         lens_spec,
         SCAN,
     );
@@ -109,7 +133,7 @@ fn localize_revisit(root: &std::path::Path, room: RoomKind, seed: u64, lens_spec
         &format!("{tag}-revisit"),
         room,
         seed,
-        RESOLUTION,
+        resolution,
         lens_spec,
         REVISIT,
     );
@@ -147,6 +171,7 @@ fn run_case(
     room: RoomKind,
     seed: u64,
     lens_spec: &str,
+    resolution: u32,
 ) -> (String, Vec<String>) {
     let Revisit {
         tag,
@@ -154,7 +179,7 @@ fn run_case(
         results,
         summary: s,
         errors: e,
-    } = localize_revisit(root, room, seed, lens_spec);
+    } = localize_revisit(root, room, seed, lens_spec, resolution);
     let mut failures = Vec::new();
     if !summary.quality.trustworthy {
         failures.push(format!(
@@ -206,12 +231,12 @@ fn run_case(
     (line, failures)
 }
 
-/// Run `cases` and fail with every case's failures.
-fn run_cases(cases: &[(RoomKind, u64, &str)]) {
+/// Run `cases` at `resolution` px and fail with every case's failures.
+fn run_cases(cases: &[(RoomKind, u64, &str)], resolution: u32) {
     let dir = tempfile::tempdir().unwrap();
     let mut failures = Vec::new();
     for &(room, seed, lens) in cases {
-        let (line, f) = run_case(dir.path(), room, seed, lens);
+        let (line, f) = run_case(dir.path(), room, seed, lens, resolution);
         eprintln!("{line}");
         failures.extend(f);
     }
@@ -220,13 +245,21 @@ fn run_cases(cases: &[(RoomKind, u64, &str)]) {
 
 #[test]
 fn revisits_relocalize_in_the_rooms_that_meet_the_acceptance() {
-    run_cases(&PASSING);
+    run_cases(&PASSING, RESOLUTION);
 }
 
 #[test]
 #[ignore = "the acceptance over ten rooms: ~5 min, and the workshop's maps are refused"]
 fn every_room_kind_meets_the_relocalization_acceptance() {
-    run_cases(&CASES);
+    run_cases(&CASES, RESOLUTION);
+}
+
+#[test]
+#[ignore = "four held-out kitchens at 480 px: ~6 min; only kitchen 11 meets the acceptance"]
+fn kitchens_at_480_px_meet_the_relocalization_acceptance() {
+    // Kitchen 12's revisit was placed whole at a look-alike 0.92-0.95 m away before the
+    // uniqueness rule; it must now be lost rather than placed, like every frame it cannot tell.
+    run_cases(&KITCHENS, KITCHEN_RESOLUTION);
 }
 
 #[test]
@@ -238,7 +271,7 @@ fn a_look_alike_place_is_refused_or_withdrawn_not_output() {
     // over 5 cm. The look-alike must be refused at relocalization (the map repeats the view)
     // or withdrawn where it meets the right run, saying why, and no pose be over 5 cm.
     let dir = tempfile::tempdir().unwrap();
-    let r = localize_revisit(dir.path(), RoomKind::Kitchen, 7, "right/front");
+    let r = localize_revisit(dir.path(), RoomKind::Kitchen, 7, "right/front", RESOLUTION);
     let over = r.errors.iter().filter(|&&x| x > MAX_ERROR_M).count();
     let withdrawn = (r.results.iter()).filter(|f| is_withdrawn(f)).count();
     let refused = (r.results.iter()).filter(|f| is_refused_as_copy(f)).count();
