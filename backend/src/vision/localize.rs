@@ -282,8 +282,9 @@ impl Default for LocalizerOptions {
             // One whole-map attempt costs about four window attempts: past the first ten, at
             // most half of a long lost run's relocalization time goes to the whole map.
             relocalization_map_interval: 4,
-            // A hypothesis's worth: on the held-out kitchens, poses one pattern period off had
-            // 0-4 inlier landmarks outside the map's copies, right ones 31-55.
+            // A hypothesis's worth: poses one pattern period off (kitchen 12, 480 px) kept 0-4
+            // inlier landmarks outside the map's copies, right ones (photos 13, studio 14,
+            // kitchen 11) 31-79.
             min_unique_inliers: 12,
             // 8 × 8 cells of 120 px at 960 px: a photo or a tile panel covers a few of them.
             support_grid: 8,
@@ -897,11 +898,10 @@ impl Localizer {
     }
 
     /// The uniqueness rule of relocalization (`min_unique_inliers`).
-    fn check_unique(&self, e: &Estimate) -> std::result::Result<(), String> {
+    fn check_unique(&self, r: &RepeatedEvidence) -> std::result::Result<(), String> {
         if self.options.min_unique_inliers == 0 {
             return Ok(());
         }
-        let r = self.repeated_evidence(e);
         let unique = r.landmarks - r.repeated;
         if unique >= self.options.min_unique_inliers {
             return Ok(());
@@ -1838,26 +1838,25 @@ impl Localizer {
         best_rejected: &mut usize,
         last_reason: &mut String,
     ) {
-        let verdict = match &attempt {
-            Ok(e) => {
-                // The uniqueness rule is the dearest: only a candidate that would replace the
-                // best is put to it (every one when traced).
-                let contends = trace.is_some()
-                    || best
-                        .as_ref()
-                        .is_none_or(|b| e.inliers.len() > b.inliers.len());
-                self.accept(e, self.options.min_inliers_relocalization)
-                    .and_then(|()| self.check_view_support(e, feats))
-                    .and_then(|()| {
-                        if contends {
-                            self.check_unique(e)
-                        } else {
-                            Ok(())
-                        }
-                    })
-            }
+        let checked = match &attempt {
+            Ok(e) => self
+                .accept(e, self.options.min_inliers_relocalization)
+                .and_then(|()| self.check_view_support(e, feats)),
             Err(why) => Err(why.clone()),
         };
+        // The map's copies of the evidence are the dearest figure: found once, only for a
+        // candidate that passed the other rules and would replace the best (for every
+        // estimate when traced).
+        let repeated = attempt.as_ref().ok().and_then(|e| {
+            let contends = checked.is_ok()
+                && self.options.min_unique_inliers > 0
+                && best
+                    .as_ref()
+                    .is_none_or(|b| e.inliers.len() > b.inliers.len());
+            (trace.is_some() || contends).then(|| self.repeated_evidence(e))
+        });
+        let verdict =
+            checked.and_then(|()| repeated.as_ref().map_or(Ok(()), |r| self.check_unique(r)));
         if let Some(t) = trace {
             // A whole-map attempt is traced under the keyframe viewing its estimate best.
             let keyframe = candidate.map_or_else(
@@ -1881,10 +1880,7 @@ impl Localizer {
                     |e| e.inliers.iter().map(|c| c.landmark).collect(),
                 ),
                 plane_share: attempt.as_ref().map_or(0.0, |e| self.plane_share(e)),
-                repeated: attempt.as_ref().map_or_else(
-                    |_| RepeatedEvidence::default(),
-                    |e| self.repeated_evidence(e),
-                ),
+                repeated: repeated.clone().unwrap_or_default(),
                 rejection: verdict.clone().err().unwrap_or_default(),
             });
         }
