@@ -25,7 +25,8 @@
 //! `KIWI_RELOC_FRAMES=1` (every query frame's status, inliers and full reason),
 //! `KIWI_RELOC_GUIDED_VIEWS=0` (guided matching against representative descriptors only),
 //! `KIWI_RELOC_TOPUP_BY_VIEW=0` (tracking's top-up from the keyframes nearest in centre),
-//! `KIWI_RELOC_DENSIFY_UNCERTAIN=0` (a poorly constrained tracked pose is refused at once).
+//! `KIWI_RELOC_DENSIFY_UNCERTAIN=0` (a poorly constrained tracked pose is refused at once),
+//! `KIWI_RELOC_AFFINE=1|0` (affine-normalised rectified patches in map and query, or not).
 
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
@@ -39,7 +40,7 @@ use common::reloc::{
 
 use kiwi_backend::vision::align::trajectory_error;
 use kiwi_backend::vision::episode::{LensStream, build_map_with_orb, localize_stream};
-use kiwi_backend::vision::localize::{LocalizationStatus, LocalizerOptions};
+use kiwi_backend::vision::localize::{LocalizationStatus, LocalizerOptions, is_refused_as_copy};
 use kiwi_backend::vision::runs::is_withdrawn;
 use kiwi_fixtures::scenario::Scenario;
 use kiwi_fixtures::scene::{RoomKind, Scene, SceneOptions};
@@ -131,6 +132,9 @@ fn main() {
         options.topup_by_view = false;
         options.densify_uncertain = false;
         println!("baseline: {options:?}");
+    }
+    if let Ok(a) = std::env::var("KIWI_RELOC_AFFINE") {
+        options.orb.affine_adapted = a == "1";
     }
     if env("KIWI_RELOC_SERVE_UNTRUSTED", "0") == "1" {
         options.serve_untrusted_map = true;
@@ -246,6 +250,7 @@ fn main() {
             .find(|r| r.status != LocalizationStatus::Lost)
             .map(|r| r.t - results[0].t);
         let withdrawn = (results.iter()).filter(|f| is_withdrawn(f)).count();
+        let refused_as_copy = (results.iter()).filter(|f| is_refused_as_copy(f)).count();
         let mut reasons: std::collections::BTreeMap<String, usize> = Default::default();
         for r in results
             .iter()
@@ -255,7 +260,7 @@ fn main() {
             *reasons.entry(key).or_default() += 1;
         }
         println!(
-            "[{tag}] query: {}/{} localized ({:.1} %: {} tracked, {} relocalized), first pose after {}, median {} inliers; error median {:.1} mm, worst {:.1} mm, {} over 5 cm, {withdrawn} withdrawn; {:.1} s wall, {:.1} frames per CPU s",
+            "[{tag}] query: {}/{} localized ({:.1} %: {} tracked, {} relocalized), first pose after {}, median {} inliers; error median {:.1} mm, worst {:.1} mm, {} over 5 cm, {withdrawn} withdrawn, {refused_as_copy} refused as a copy; {:.1} s wall, {:.1} frames per CPU s",
             s.localized,
             s.frames,
             100.0 * s.localized_fraction,
