@@ -291,7 +291,10 @@ pub struct OrbOptions {
     /// is isotropic (its second-moment matrix a multiple of the identity), so a surface seen
     /// face-on in one view and obliquely in another gives the same patch up to a rotation, which
     /// the intensity centroid then fixes. Rectification alone removes the lens's distortion but
-    /// not the foreshortening of a change of viewing direction.
+    /// not the foreshortening of a change of viewing direction. Off by default: it localizes
+    /// more of the repeated-texture revisits, but one held-out revisit then accepts poses over
+    /// 5 cm where tracking resumes (docs/vision.md, "Affine-normalised patches"), and it doubles
+    /// the cost of describing. Map and query must use the same setting (maps do not record it).
     pub affine_adapted: bool,
 }
 
@@ -303,7 +306,7 @@ impl Default for OrbOptions {
             levels: 8,
             fast_threshold: 20,
             rectified: true,
-            affine_adapted: true,
+            affine_adapted: false,
         }
     }
 }

@@ -25,14 +25,12 @@ use crate::vision::quality::MapQuality;
 
 /// The `format` tag of a map file.
 pub const MAP_FORMAT: &str = "kiwi-visual-map";
-/// The schema version this build writes (4: descriptors computed on affine-normalised
-/// rectified patches, `OrbOptions::affine_adapted`; 3 on plain rectified patches,
-/// `OrbOptions::rectified`; 2 added the place-recognition vocabulary).
-pub const MAP_SCHEMA_VERSION: u32 = 4;
-/// The oldest schema this build reads: older maps hold descriptors of another kind (raw fisheye
-/// image up to 2, plain rectified patches in 3), which do not match this build's, and must be
-/// rebuilt.
-pub const MAP_SCHEMA_OLDEST: u32 = 4;
+/// The schema version this build writes (3: descriptors computed on rectified patches around
+/// each keypoint's bearing, `OrbOptions::rectified`; 2 added the place-recognition vocabulary).
+pub const MAP_SCHEMA_VERSION: u32 = 3;
+/// The oldest schema this build reads: older maps hold descriptors of the raw fisheye image,
+/// which do not match this build's, and must be rebuilt.
+pub const MAP_SCHEMA_OLDEST: u32 = 3;
 /// Largest deviation of a unit vector's norm from one in a valid file.
 const UNIT_TOLERANCE: f64 = 1e-6;
 
@@ -291,16 +289,11 @@ impl VisualMap {
             return Err(map_err(
                 path,
                 format!(
-                    "field `schema_version`: {} is a map whose descriptors were computed {}; \
-                     this kiwi describes features on affine-normalised rectified patches \
+                    "field `schema_version`: {} is a map whose descriptors were computed on the \
+                     raw fisheye image; this kiwi describes features on rectified patches \
                      (schema {MAP_SCHEMA_VERSION}) and cannot match them: rebuild the map with \
                      `kiwi map`",
-                    self.schema_version,
-                    if self.schema_version == 3 {
-                        "on plain rectified patches"
-                    } else {
-                        "on the raw fisheye image"
-                    }
+                    self.schema_version
                 ),
             ));
         }
