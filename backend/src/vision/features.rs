@@ -660,6 +660,24 @@ impl PatchFrame {
         }
         true
     }
+
+    /// [`PatchFrame::sample`] of the [`RECTIFIED_PATCH`]-pixel patch that is described.
+    fn sample_patch(
+        &self,
+        image: &GrayImage,
+        camera: &dyn CameraModel,
+        nodes_buf: &mut Vec<Point2<f64>>,
+        patch: &mut [f32],
+    ) -> bool {
+        self.sample(
+            image,
+            camera,
+            RECTIFIED_PATCH,
+            RECTIFIED_GRID,
+            nodes_buf,
+            patch,
+        )
+    }
 }
 
 /// The Gaussian weights (σ = [`ADAPT_SIGMA`]) of the [`ADAPT_SAMPLES`]² samples of the shape
@@ -825,14 +843,7 @@ fn describe_rectified(
             step,
             shape: Matrix2::identity(),
         };
-        if !frame.sample(
-            image,
-            camera,
-            RECTIFIED_PATCH,
-            RECTIFIED_GRID,
-            &mut nodes,
-            &mut patch,
-        ) {
+        if !frame.sample_patch(image, camera, &mut nodes, &mut patch) {
             continue;
         }
         if affine_adapted {
@@ -853,25 +864,10 @@ fn describe_rectified(
                 &mut window,
             ) {
                 frame.shape = shape;
-                let adapted = frame.sample(
-                    image,
-                    camera,
-                    RECTIFIED_PATCH,
-                    RECTIFIED_GRID,
-                    &mut nodes,
-                    &mut patch,
-                );
-                if !adapted {
+                if !frame.sample_patch(image, camera, &mut nodes, &mut patch) {
                     // The stretched patch leaves the field of view: describe the plain one.
                     frame.shape = Matrix2::identity();
-                    if !frame.sample(
-                        image,
-                        camera,
-                        RECTIFIED_PATCH,
-                        RECTIFIED_GRID,
-                        &mut nodes,
-                        &mut patch,
-                    ) {
+                    if !frame.sample_patch(image, camera, &mut nodes, &mut patch) {
                         continue;
                     }
                 }
