@@ -58,15 +58,7 @@ impl ColorImage {
     /// Luma of the frame, with the weights of [`GrayImage::from_rgb`] (images read from PNG and
     /// from a lossless video are the same bytes).
     pub fn to_gray(&self) -> Result<GrayImage> {
-        let data = self
-            .bgr
-            .chunks_exact(3)
-            .map(|p| {
-                ((u32::from(p[2]) * 77 + u32::from(p[1]) * 150 + u32::from(p[0]) * 29 + 128) >> 8)
-                    as u8
-            })
-            .collect();
-        GrayImage::new(self.width as u32, self.height as u32, data)
+        GrayImage::from_bgr(self.width as u32, self.height as u32, &self.bgr)
     }
 
     /// A frame from pixels red first (`width · height · 3` bytes), the inverse of
@@ -243,7 +235,12 @@ impl FrameSource {
                 }
                 GrayImage::load(&self.lens_dir.join(&self.frames[i].file))
             }
-            Some(_) => self.load_color(i)?.to_gray(),
+            Some(cursor) => {
+                let mut c = cursor.lock().map_err(|_| {
+                    input_err(&self.lens_dir, "a decoding thread failed earlier".into())
+                })?;
+                c.load(i, &self.frames)?.to_gray()
+            }
         }
     }
 
@@ -263,13 +260,13 @@ impl FrameSource {
         indices: &[usize],
         f: impl FnMut(usize, GrayImage) -> Result<()>,
     ) -> Result<()> {
-        self.for_each_decoded(indices, |i| self.load_gray(i), ColorImage::to_gray, f)
+        self.for_each_decoded(indices, |i| self.load_gray(i), VideoReader::read_gray, f)
     }
 
     /// [`FrameSource::for_each_gray`] in colour.
     pub fn for_each_color(&self, f: impl FnMut(usize, ColorImage) -> Result<()>) -> Result<()> {
         let all: Vec<usize> = (0..self.frames.len()).collect();
-        self.for_each_decoded(&all, |i| self.load_color(i), |c| Ok(c.clone()), f)
+        self.for_each_decoded(&all, |i| self.load_color(i), VideoReader::read, f)
     }
 
     /// [`FrameSource::for_each_gray_at`] in colour: only the frames at `indices` (strictly
@@ -279,7 +276,7 @@ impl FrameSource {
         indices: &[usize],
         f: impl FnMut(usize, ColorImage) -> Result<()>,
     ) -> Result<()> {
-        self.for_each_decoded(indices, |i| self.load_color(i), |c| Ok(c.clone()), f)
+        self.for_each_decoded(indices, |i| self.load_color(i), VideoReader::read, f)
     }
 
     /// Check that `indices` name frames of this stream in strictly increasing order.
@@ -291,7 +288,7 @@ impl FrameSource {
         &self,
         indices: &[usize],
         load: impl Fn(usize) -> Result<T> + Sync,
-        from_video: impl Fn(&ColorImage) -> Result<T> + Sync,
+        read_video: impl Fn(&mut VideoReader) -> Result<(T, Option<f64>)> + Sync,
         mut f: impl FnMut(usize, T) -> Result<()>,
     ) -> Result<()> {
         self.check_indices(indices)?;
@@ -300,7 +297,7 @@ impl FrameSource {
         let parallel = rayon::current_num_threads() > 1;
         let (tx, rx) = std::sync::mpsc::sync_channel::<Result<T>>(DECODE_BATCH);
         std::thread::scope(|scope| {
-            let (load, from_video) = (&load, &from_video);
+            let (load, read_video) = (&load, &read_video);
             scope.spawn(move || match &self.storage {
                 LensStorage::Images => {
                     for chunk in indices.chunks(DECODE_BATCH) {
@@ -328,21 +325,21 @@ impl FrameSource {
                                 return;
                             }
                         };
-                    // Frames between the wanted ones are decoded and dropped (a video is read
-                    // in order).
+                    // Frames between the wanted ones are decoded (a video is read in order) and
+                    // their times checked, but not converted.
                     let last = indices.last().copied().unwrap_or(0);
                     let mut wanted = indices.iter().peekable();
                     for i in 0..=last {
-                        let read = read_checked(&mut reader, i, &self.frames);
                         if wanted.peek() != Some(&&i) {
-                            if let Err(e) = read {
+                            let time = |r: &mut VideoReader| r.read_time().map(|t| ((), t));
+                            if let Err(e) = read_checked(&mut reader, i, &self.frames, time) {
                                 let _ = tx.send(Err(e));
                                 return;
                             }
                             continue;
                         }
                         wanted.next();
-                        let img = read.and_then(|c| from_video(&c));
+                        let img = read_checked(&mut reader, i, &self.frames, read_video);
                         let failed = img.is_err();
                         if tx.send(img).is_err() || failed {
                             return;
@@ -419,8 +416,13 @@ pub fn check_increasing_below(lens_dir: &Path, indices: &[usize], len: usize) ->
 
 /// Read the next frame of `reader` (frame `i`) and check its container time against
 /// `frames.csv`.
-fn read_checked(reader: &mut VideoReader, i: usize, frames: &[FrameRecord]) -> Result<ColorImage> {
-    let (img, time_s) = reader.read()?;
+fn read_checked<T>(
+    reader: &mut VideoReader,
+    i: usize,
+    frames: &[FrameRecord],
+    read: impl FnOnce(&mut VideoReader) -> Result<(T, Option<f64>)>,
+) -> Result<T> {
+    let (img, time_s) = read(reader)?;
     let expected = frames[i].t - frames[0].t;
     // A frame without a container time (drained from the decoder at the end) is known by its
     // position: the reader counts frames from the checked ones before it.
@@ -470,7 +472,12 @@ impl Cursor {
         self.reader.seek(start)?;
         let mut last = None;
         for k in start..=i {
-            let img = Arc::new(read_checked(&mut self.reader, k, frames)?);
+            let img = Arc::new(read_checked(
+                &mut self.reader,
+                k,
+                frames,
+                VideoReader::read,
+            )?);
             self.keep(k, Arc::clone(&img));
             last = Some(img);
         }

@@ -6,6 +6,7 @@
 //! only what KIWI wrote into it (planar RGB for the lossless codecs, so the conversion to BGR is
 //! a byte shuffle and images are bit-identical to the PNGs they were made from).
 
+use std::borrow::Cow;
 use std::path::{Path, PathBuf};
 
 use opencv::core::Mat;
@@ -18,6 +19,7 @@ use opencv::videoio::{
 use kiwi_core::layout::VideoStream;
 
 use crate::error::{BackendError, Result};
+use crate::vision::features::GrayImage;
 
 /// A frame's container time may differ from its `frames.csv` time by this much: containers
 /// round times to their time base (1 ms in Matroska), while the neighbouring frame of a
@@ -170,6 +172,29 @@ impl VideoReader {
     /// Decode the next frame; returns it with its container time relative to the first frame
     /// (s), when the decoder gives one.
     pub fn read(&mut self) -> Result<(ColorImage, Option<f64>)> {
+        let time_s = self.decode()?;
+        let bgr = self.decoded_bgr()?.into_owned();
+        let (width, height) = (self.width, self.height);
+        Ok((ColorImage { width, height, bgr }, time_s))
+    }
+
+    /// [`VideoReader::read`] in luma (the weights of [`GrayImage::from_rgb`]), converted
+    /// straight from the decoder's buffer.
+    pub fn read_gray(&mut self) -> Result<(GrayImage, Option<f64>)> {
+        let time_s = self.decode()?;
+        let gray =
+            GrayImage::from_bgr(self.width as u32, self.height as u32, &self.decoded_bgr()?)?;
+        Ok((gray, time_s))
+    }
+
+    /// Decode the next frame for its container time only (as [`VideoReader::read`] gives it).
+    pub fn read_time(&mut self) -> Result<Option<f64>> {
+        self.decode()
+    }
+
+    /// Decode the next frame into the reader's buffer and check its size; its container time
+    /// as [`VideoReader::read`] gives it.
+    fn decode(&mut self) -> Result<Option<f64>> {
         let i = self.next;
         if i >= self.frames {
             return Err(video_err(
@@ -203,34 +228,23 @@ impl VideoReader {
                 ),
             ));
         }
-        let bytes = if self.buffer.is_continuous() {
-            self.buffer
-                .data_bytes()
-                .map_err(|e| video_err(&self.path, format!("frame {i}: {e}")))?
-                .to_vec()
-        } else {
-            let mut packed = Vec::with_capacity(w * h * 3);
-            for r in 0..h as i32 {
-                let row = self
-                    .buffer
-                    .row(r)
-                    .map_err(|e| video_err(&self.path, format!("frame {i}: {e}")))?;
-                packed.extend_from_slice(
-                    row.data_bytes()
-                        .map_err(|e| video_err(&self.path, format!("frame {i}: {e}")))?,
-                );
-            }
-            packed
-        };
         self.next += 1;
-        Ok((
-            ColorImage {
-                width: w,
-                height: h,
-                bgr: bytes,
-            },
-            time_s,
-        ))
+        Ok(time_s)
+    }
+
+    /// The packed BGR bytes of the frame [`VideoReader::decode`] decoded last: the decoder's
+    /// buffer itself when its rows are contiguous, else a packed copy.
+    fn decoded_bgr(&self) -> Result<Cow<'_, [u8]>> {
+        let i = self.next.saturating_sub(1);
+        let err = |e: opencv::Error| video_err(&self.path, format!("frame {i}: {e}"));
+        if self.buffer.is_continuous() {
+            return Ok(Cow::Borrowed(self.buffer.data_bytes().map_err(err)?));
+        }
+        let mut packed = Vec::with_capacity(self.width * self.height * 3);
+        for r in 0..self.height as i32 {
+            packed.extend_from_slice(self.buffer.row(r).map_err(err)?.data_bytes().map_err(err)?);
+        }
+        Ok(Cow::Owned(packed))
     }
 
     /// The video file.

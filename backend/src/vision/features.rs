@@ -59,14 +59,13 @@ impl GrayImage {
 
     /// Luma (BT.601 integer weights) of packed 8-bit RGB pixels.
     pub fn from_rgb(width: u32, height: u32, rgb: &[u8]) -> Result<Self> {
-        let data = rgb
-            .chunks_exact(3)
-            .map(|p| {
-                ((u32::from(p[0]) * 77 + u32::from(p[1]) * 150 + u32::from(p[2]) * 29 + 128) >> 8)
-                    as u8
-            })
-            .collect();
-        Self::new(width, height, data)
+        Self::new(width, height, luma::<true>(rgb))
+    }
+
+    /// Luma of packed 8-bit BGR pixels (blue first, as OpenCV decodes), with the weights of
+    /// [`GrayImage::from_rgb`].
+    pub fn from_bgr(width: u32, height: u32, bgr: &[u8]) -> Result<Self> {
+        Self::new(width, height, luma::<false>(bgr))
     }
 
     /// Read an image file (PNG, JPEG, …) as grayscale (BT.601 luma of colour images).
@@ -135,6 +134,7 @@ impl GrayImage {
     }
 
     /// Bilinear value at a sub-pixel position (pixel centres at integers), 0 outside.
+    #[inline]
     pub fn sample(&self, x: f64, y: f64) -> f32 {
         let (w, h) = (self.width as usize, self.height as usize);
         // Inside the image (all four neighbours exist): truncation is the floor and no neighbour
@@ -171,6 +171,19 @@ impl GrayImage {
         }
         self.data[y as usize * self.width as usize + x as usize]
     }
+}
+
+/// BT.601 luma in 8-bit fixed point, `(77 R + 150 G + 29 B + 128) / 256`, of packed 8-bit
+/// pixels, red first when `RED_FIRST` (blue first otherwise). Written into a buffer made once:
+/// about twice as fast as collecting the mapped pixels.
+fn luma<const RED_FIRST: bool>(pixels: &[u8]) -> Vec<u8> {
+    let (r, b) = if RED_FIRST { (0, 2) } else { (2, 0) };
+    let mut out = vec![0u8; pixels.len() / 3];
+    for (o, p) in out.iter_mut().zip(pixels.chunks_exact(3)) {
+        *o = ((u32::from(p[r]) * 77 + u32::from(p[1]) * 150 + u32::from(p[b]) * 29 + 128) >> 8)
+            as u8;
+    }
+    out
 }
 
 /// A per-lens static mask: non-zero pixels may hold features.
@@ -561,6 +574,13 @@ impl OrbExtractor {
     }
 }
 
+/// `v.round().clamp(0.0, 255.0) as u8` (halves away from zero, NaN to 0) without a call to the
+/// C library's `roundf` (x86-64's baseline has no rounding instruction).
+fn round_to_u8(v: f32) -> u8 {
+    let t = v as u8;
+    t.saturating_add(u8::from(v - f32::from(t) >= 0.5))
+}
+
 /// Pixels per radian of the lens at its image centre.
 fn centre_pixels_per_rad(camera: &dyn CameraModel) -> Option<f64> {
     let (w, h) = camera.resolution();
@@ -637,25 +657,30 @@ impl PatchFrame {
                 }
             }
         }
-        let node = |gx: usize, gy: usize| nodes_buf[gy * nodes + gx];
-        for py in 0..side {
+        let node = |gx: usize, gy: usize| nodes_buf[gy * nodes + gx].coords;
+        for (py, row) in out.chunks_exact_mut(side).take(side).enumerate() {
             let fy = py as f64 / cell;
             let gy = (fy as usize).min(grid - 1);
             let ay = fy - gy as f64;
-            for px in 0..side {
-                let fx = px as f64 / cell;
-                let gx = (fx as usize).min(grid - 1);
-                let ax = fx - gx as f64;
-                let (a, b, c, d) = (
-                    node(gx, gy),
-                    node(gx + 1, gy),
-                    node(gx, gy + 1),
-                    node(gx + 1, gy + 1),
-                );
-                let top = a.coords + (b.coords - a.coords) * ax;
-                let bottom = c.coords + (d.coords - c.coords) * ax;
-                let p = top + (bottom - top) * ay;
-                out[py * side + px] = image.sample(p.x, p.y);
+            // Along a row the position is linear in x between the cell edges' positions.
+            let edge = |gx: usize| node(gx, gy) + (node(gx, gy + 1) - node(gx, gy)) * ay;
+            let mut left = edge(0);
+            for gx in 0..grid {
+                let right = edge(gx + 1);
+                let per_px = (right - left) / cell;
+                let origin = gx as f64 * cell;
+                // Pixels whose cell is `gx` (the last cell also takes any remainder).
+                let first = origin.ceil() as usize;
+                let last = if gx + 1 == grid {
+                    side
+                } else {
+                    (((gx + 1) as f64) * cell).ceil() as usize
+                };
+                for (px, value) in row.iter_mut().enumerate().take(last).skip(first) {
+                    let p = left + per_px * (px as f64 - origin);
+                    *value = image.sample(p.x, p.y);
+                }
+                left = right;
             }
         }
         true
@@ -894,10 +919,10 @@ fn describe_rectified(
             MOSAIC_MARGIN + col * RECTIFIED_PATCH,
             MOSAIC_MARGIN + row * RECTIFIED_PATCH,
         );
-        for py in 0..RECTIFIED_PATCH {
-            for px in 0..RECTIFIED_PATCH {
-                mosaic[(oy + py) * mw + ox + px] =
-                    patch[py * RECTIFIED_PATCH + px].round().clamp(0.0, 255.0) as u8;
+        let rows = mosaic.chunks_exact_mut(mw).skip(oy);
+        for (dst, src) in rows.zip(patch.chunks_exact(RECTIFIED_PATCH)) {
+            for (d, &v) in dst[ox..ox + RECTIFIED_PATCH].iter_mut().zip(src) {
+                *d = round_to_u8(v);
             }
         }
         let kp_cv = KeyPoint::new_coords(
@@ -1379,6 +1404,35 @@ fn klt_forward_backward<I: opencv::core::ToInputArray>(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn rounding_to_u8_matches_round_and_clamp() {
+        let edges = [
+            f32::NAN,
+            f32::NEG_INFINITY,
+            f32::INFINITY,
+            -0.5,
+            -0.49999997,
+            0.49999997,
+            0.5,
+            254.5,
+            255.49998,
+            255.5,
+            256.0,
+            1e9,
+        ];
+        let sweep = (-2000..300_000).map(|k| k as f32 * 0.000_977 - 1.0);
+        for v in edges.into_iter().chain(sweep) {
+            assert_eq!(round_to_u8(v), v.round().clamp(0.0, 255.0) as u8, "{v}");
+        }
+        // Every value just below and at each half.
+        for k in 0..=256 {
+            let half = k as f32 + 0.5;
+            for v in [half, f32::from_bits(half.to_bits() - 1)] {
+                assert_eq!(round_to_u8(v), v.round().clamp(0.0, 255.0) as u8, "{v}");
+            }
+        }
+    }
 
     #[test]
     fn sampling_inside_gives_the_bounds_checked_values_exactly() {
