@@ -72,6 +72,47 @@ pub fn angular_error(bearing: &Vector3<f64>, point: &Vector3<f64>) -> f64 {
     bearing.cross(point).norm().atan2(bearing.dot(point))
 }
 
+/// A threshold on [`angular_error`] that rejects most points far beyond it without the
+/// arc tangent (RANSAC scores every correspondence of every hypothesis, and in relocalization
+/// most are outliers): exactly the same decisions and values as comparing `angular_error`.
+#[derive(Debug, Clone, Copy)]
+struct AngleThreshold {
+    /// The threshold (rad).
+    rad: f64,
+    /// `tan(rad)` widened by [`ANGLE_PRECHECK_MARGIN`], or infinity when `rad` is not below
+    /// 90° (no pre-check).
+    tan: f64,
+}
+
+/// Relative widening of the pre-check's tangent: far above the arc tangent's rounding (~1e-16),
+/// so a point the pre-check rejects is beyond the threshold whatever the rounding.
+const ANGLE_PRECHECK_MARGIN: f64 = 1e-9;
+
+impl AngleThreshold {
+    fn new(rad: f64) -> Self {
+        let tan = if rad > 0.0 && rad < std::f64::consts::FRAC_PI_2 {
+            rad.tan() * (1.0 + ANGLE_PRECHECK_MARGIN)
+        } else {
+            f64::INFINITY
+        };
+        Self { rad, tan }
+    }
+
+    /// `Some(angular_error(bearing, point))` when it is within the threshold, else `None`.
+    #[inline]
+    fn error_within(&self, bearing: &Vector3<f64>, point: &Vector3<f64>) -> Option<f64> {
+        if self.tan.is_finite() {
+            let d = bearing.dot(point);
+            // At or beyond 90°, or (for a point not at the origin) clearly beyond the tangent.
+            if d <= 0.0 || bearing.cross(point).norm() > d * self.tan {
+                return None;
+            }
+        }
+        let e = angular_error(bearing, point);
+        (e <= self.rad).then_some(e)
+    }
+}
+
 /// RMS of [`angular_error`] between `bearings` and `points` (their frame) seen from
 /// `cam_from_world` (rad); 0 for no points.
 pub fn rms_angular_error(
@@ -512,7 +553,11 @@ fn rigid_from_triangles(src: &[Vector3<f64>; 3], dst: &[Vector3<f64>; 3]) -> Opt
         Some(Matrix3::from_columns(&[e1, e2, e3]))
     };
     let r = frame(dst)? * frame(src)?.transpose();
-    let rotation = UnitQuaternion::from_matrix(&r);
+    // `r` is orthonormal by construction: Shepperd's method reads it off directly, where
+    // `UnitQuaternion::from_matrix` iterates from the identity (slowly near a half turn, and
+    // not at all from one).
+    let rotation =
+        UnitQuaternion::from_rotation_matrix(&nalgebra::Rotation3::from_matrix_unchecked(r));
     let t = dst[0] - rotation * src[0];
     Some(Pose::from_parts(Translation3::from(t), rotation))
 }
@@ -695,12 +740,14 @@ pub fn absolute_pose_ransac(
     let mut best: Option<(Pose, f64, usize)> = None;
     let mut needed = options.max_iterations;
     let mut it = 0;
+    let threshold = AngleThreshold::new(options.threshold_rad);
+    let within = |i: usize, pose: &Pose| {
+        threshold.error_within(&bearings[i], &(pose * Point3::from(points[i])).coords)
+    };
+    // A point beyond the threshold costs the threshold whatever its error: infinity says so.
     let score = |pose: &Pose| {
         msac(
-            bearings
-                .iter()
-                .zip(points)
-                .map(|(b, p)| angular_error(b, &(pose * Point3::from(*p)).coords)),
+            (0..n).map(|i| within(i, pose).unwrap_or(f64::INFINITY)),
             options.threshold_rad,
         )
     };
@@ -721,13 +768,7 @@ pub fn absolute_pose_ransac(
         let xs = [points[sample[0]], points[sample[1]], points[sample[2]]];
         for pose in p3p(&ys, &xs) {
             if let Some(test) = &test
-                && test
-                    .iter()
-                    .filter(|&&i| {
-                        angular_error(&bearings[i], &(pose * Point3::from(points[i])).coords)
-                            <= options.threshold_rad
-                    })
-                    .count()
+                && test.iter().filter(|&&i| within(i, &pose).is_some()).count()
                     < PREVERIFY_MIN_INLIERS
             {
                 continue;
@@ -743,12 +784,7 @@ pub fn absolute_pose_ransac(
     let (mut pose, _, _) = best?;
     // Refine on the current inliers, then once more on the refined inlier set.
     for _ in 0..2 {
-        let inl: Vec<usize> = (0..n)
-            .filter(|&i| {
-                angular_error(&bearings[i], &(pose * Point3::from(points[i])).coords)
-                    <= options.threshold_rad
-            })
-            .collect();
+        let inl: Vec<usize> = (0..n).filter(|&i| within(i, &pose).is_some()).collect();
         if inl.len() < K {
             return None;
         }
@@ -756,11 +792,7 @@ pub fn absolute_pose_ransac(
         let p: Vec<Vector3<f64>> = inl.iter().map(|&i| points[i]).collect();
         pose = refine_absolute_pose(&pose, &b, &p, options.threshold_rad);
     }
-    let inliers: Vec<bool> = bearings
-        .iter()
-        .zip(points)
-        .map(|(b, p)| angular_error(b, &(pose * Point3::from(*p)).coords) <= options.threshold_rad)
-        .collect();
+    let inliers: Vec<bool> = (0..n).map(|i| within(i, &pose).is_some()).collect();
     let num_inliers = inliers.iter().filter(|&&f| f).count();
     (num_inliers >= options.min_inliers).then_some(AbsolutePose {
         cam_from_world: pose,
@@ -1020,4 +1052,48 @@ pub fn triangulate(obs: &[RayObservation], limits: &TriangulationLimits) -> Opti
             parallax_rad: parallax,
             max_error_rad: max_error,
         })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_angle_pre_check_decides_as_the_arc_tangent_does() {
+        let mut rng = ChaCha8Rng::seed_from_u64(7);
+        for threshold in [1e-4, 0.015, 0.3, 1.5, 2.0] {
+            let t = AngleThreshold::new(threshold);
+            let mut near = 0;
+            for k in 0..20_000 {
+                let b = Vector3::new(
+                    rng.random_range(-1.0..1.0),
+                    rng.random_range(-1.0..1.0),
+                    rng.random_range(-1.0..1.0),
+                )
+                .normalize();
+                // Points at angles around the threshold (every fourth one anywhere), at several
+                // distances, and a few at the origin.
+                let axis = b.cross(&Vector3::new(0.3, -0.5, 0.8)).normalize();
+                let angle = if k % 4 == 0 {
+                    rng.random_range(0.0..std::f64::consts::PI)
+                } else {
+                    threshold * (1.0 + rng.random_range(-1e-6..1e-6))
+                };
+                let dir = nalgebra::Rotation3::from_axis_angle(
+                    &nalgebra::Unit::new_normalize(axis),
+                    angle,
+                ) * b;
+                let p = dir * [1e-13, 0.2, 3.0, 1e4][k % 4];
+                let expected = angular_error(&b, &p);
+                let got = t.error_within(&b, &p);
+                assert_eq!(
+                    got,
+                    (expected <= threshold).then_some(expected),
+                    "{threshold} {k}"
+                );
+                near += usize::from((expected - threshold).abs() < 1e-5 * threshold);
+            }
+            assert!(near > 1000, "{threshold}: {near} points near the threshold");
+        }
+    }
 }
