@@ -326,7 +326,7 @@ impl FrameSource {
                             }
                         };
                     // Frames between the wanted ones are decoded (a video is read in order) and
-                    // their times checked, but not converted.
+                    // their times checked, but neither copied nor converted to luma.
                     let last = indices.last().copied().unwrap_or(0);
                     let mut wanted = indices.iter().peekable();
                     for i in 0..=last {
