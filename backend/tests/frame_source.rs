@@ -1,6 +1,7 @@
 //! Video-backed lens streams end cleanly when either side fails: a consumer that fails
 //! mid-stream stops the decoder thread (no hang), a selection decodes only its frames, and a
-//! video that disagrees with `frames.csv` names the frame.
+//! video that disagrees with `frames.csv` names the frame. A colour video's luma, read in order
+//! or at random, is the luma of the pixels written (red, green and blue in their places).
 
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
@@ -10,6 +11,7 @@ use std::time::Duration;
 
 use kiwi_backend::error::BackendError;
 use kiwi_backend::frames::{DECODE_BATCH, FrameSource};
+use kiwi_backend::vision::features::GrayImage;
 use kiwi_core::video::{VideoCodec, VideoStreamWriter};
 
 /// A stream that hangs fails the test after this long instead of blocking the test run.
@@ -125,4 +127,41 @@ fn a_video_whose_frames_csv_disagrees_names_the_frame_and_does_not_hang() {
     });
     let e = result.unwrap_err().to_string();
     assert!(e.contains("frame 20") && e.contains("disagree"), "{e}");
+}
+
+#[test]
+fn a_colour_video_reads_as_the_luma_of_its_pixels_in_order_and_at_random() {
+    let dir = tempfile::tempdir().unwrap();
+    let lens = dir.path().join("front");
+    let n = 12;
+    // Red, green and blue each vary their own way, so a swapped channel changes the luma.
+    let frame = |i: usize| -> Vec<u8> {
+        (0..(SIZE * SIZE) as usize)
+            .flat_map(|p| {
+                let (x, y) = (p % SIZE as usize, p / SIZE as usize);
+                [(8 * x + i) as u8, (5 * y + 3 * i) as u8, (255 - 7 * x - y) as u8]
+            })
+            .collect()
+    };
+    let mut w = VideoStreamWriter::create(&lens, VideoCodec::Utvideo, SIZE, SIZE, "30").unwrap();
+    for i in 0..n {
+        w.push_rgb(&frame(i)).unwrap();
+    }
+    let times: Vec<f64> = (0..n).map(|i| i as f64 / 30.0).collect();
+    w.finish(&times).unwrap();
+    let expected = |i: usize| GrayImage::from_rgb(SIZE, SIZE, &frame(i)).unwrap();
+    let source = FrameSource::open(&lens).unwrap();
+    let mut read = 0;
+    source
+        .for_each_gray(|i, image| {
+            assert_eq!(image, expected(i), "frame {i} read in order");
+            read += 1;
+            Ok(())
+        })
+        .unwrap();
+    assert_eq!(read, n);
+    for i in [9, 2, 7] {
+        assert_eq!(source.load_gray(i).unwrap(), expected(i), "frame {i} read at random");
+        assert_eq!(source.load_color(i).unwrap().to_rgb(), frame(i), "frame {i} in colour");
+    }
 }
