@@ -139,7 +139,11 @@ fn a_colour_video_reads_as_the_luma_of_its_pixels_in_order_and_at_random() {
         (0..(SIZE * SIZE) as usize)
             .flat_map(|p| {
                 let (x, y) = (p % SIZE as usize, p / SIZE as usize);
-                [(8 * x + i) as u8, (5 * y + 3 * i) as u8, (255 - 7 * x - y) as u8]
+                [
+                    (8 * x + i) as u8,
+                    (5 * y + 3 * i) as u8,
+                    (255 - 7 * x - y) as u8,
+                ]
             })
             .collect()
     };
@@ -161,7 +165,15 @@ fn a_colour_video_reads_as_the_luma_of_its_pixels_in_order_and_at_random() {
         .unwrap();
     assert_eq!(read, n);
     for i in [9, 2, 7] {
-        assert_eq!(source.load_gray(i).unwrap(), expected(i), "frame {i} read at random");
-        assert_eq!(source.load_color(i).unwrap().to_rgb(), frame(i), "frame {i} in colour");
+        assert_eq!(
+            source.load_gray(i).unwrap(),
+            expected(i),
+            "frame {i} read at random"
+        );
+        assert_eq!(
+            source.load_color(i).unwrap().to_rgb(),
+            frame(i),
+            "frame {i} in colour"
+        );
     }
 }
