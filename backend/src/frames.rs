@@ -206,42 +206,43 @@ impl FrameSource {
 
     /// Decode frame `i` (colour).
     pub fn load_color(&self, i: usize) -> Result<ColorImage> {
+        self.check_index(i)?;
+        match self.video_frame(i) {
+            Some(frame) => Ok((*frame?).clone()),
+            None => load_image_bgr(&self.lens_dir.join(&self.frames[i].file)),
+        }
+    }
+
+    /// Decode frame `i` (luma).
+    pub fn load_gray(&self, i: usize) -> Result<GrayImage> {
+        self.check_index(i)?;
+        match self.video_frame(i) {
+            Some(frame) => frame?.to_gray(),
+            None => GrayImage::load(&self.lens_dir.join(&self.frames[i].file)),
+        }
+    }
+
+    /// Check that frame `i` is in the stream.
+    fn check_index(&self, i: usize) -> Result<()> {
         if i >= self.frames.len() {
             return Err(input_err(
                 &self.lens_dir,
                 format!("frame {i} asked for, the stream has {}", self.frames.len()),
             ));
         }
-        match &self.cursor {
-            None => load_image_bgr(&self.lens_dir.join(&self.frames[i].file)),
-            Some(cursor) => {
-                let mut c = cursor.lock().map_err(|_| {
-                    input_err(&self.lens_dir, "a decoding thread failed earlier".into())
-                })?;
-                c.load(i, &self.frames).map(|img| (*img).clone())
-            }
-        }
+        Ok(())
     }
 
-    /// Decode frame `i` (luma).
-    pub fn load_gray(&self, i: usize) -> Result<GrayImage> {
-        match &self.cursor {
-            None => {
-                if i >= self.frames.len() {
-                    return Err(input_err(
-                        &self.lens_dir,
-                        format!("frame {i} asked for, the stream has {}", self.frames.len()),
-                    ));
-                }
-                GrayImage::load(&self.lens_dir.join(&self.frames[i].file))
-            }
-            Some(cursor) => {
-                let mut c = cursor.lock().map_err(|_| {
-                    input_err(&self.lens_dir, "a decoding thread failed earlier".into())
-                })?;
-                c.load(i, &self.frames)?.to_gray()
-            }
-        }
+    /// Frame `i` of a video-backed stream through its random-access decoder (shared, cached);
+    /// `None` for a stream of images.
+    fn video_frame(&self, i: usize) -> Option<Result<Arc<ColorImage>>> {
+        let cursor = self.cursor.as_ref()?;
+        Some(
+            cursor
+                .lock()
+                .map_err(|_| input_err(&self.lens_dir, "a decoding thread failed earlier".into()))
+                .and_then(|mut c| c.load(i, &self.frames)),
+        )
     }
 
     /// Call `f(index, image)` for every frame in order, luma. Frames are decoded ahead on another
@@ -326,7 +327,7 @@ impl FrameSource {
                             }
                         };
                     // Frames between the wanted ones are decoded (a video is read in order) and
-                    // their times checked, but neither copied nor converted to luma.
+                    // their times checked, but not converted to images.
                     let last = indices.last().copied().unwrap_or(0);
                     let mut wanted = indices.iter().peekable();
                     for i in 0..=last {

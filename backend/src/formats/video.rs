@@ -144,20 +144,6 @@ impl VideoReader {
         Ok(())
     }
 
-    /// Skip the next frame without converting it.
-    pub fn skip(&mut self) -> Result<()> {
-        let i = self.next;
-        let grabbed = self
-            .capture
-            .grab()
-            .map_err(|e| video_err(&self.path, format!("frame {i}: cannot decode: {e}")))?;
-        if !grabbed {
-            return Err(self.ended_early(i));
-        }
-        self.next += 1;
-        Ok(())
-    }
-
     fn ended_early(&self, i: usize) -> BackendError {
         video_err(
             &self.path,
@@ -187,14 +173,9 @@ impl VideoReader {
         Ok((gray, time_s))
     }
 
-    /// Decode the next frame for its container time only (as [`VideoReader::read`] gives it).
+    /// Move past the next frame, decoded but not converted to an image; its container time as
+    /// [`VideoReader::read`] gives it.
     pub fn read_time(&mut self) -> Result<Option<f64>> {
-        self.decode()
-    }
-
-    /// Decode the next frame into the reader's buffer and check its size; its container time
-    /// as [`VideoReader::read`] gives it.
-    fn decode(&mut self) -> Result<Option<f64>> {
         let i = self.next;
         if i >= self.frames {
             return Err(video_err(
@@ -202,20 +183,35 @@ impl VideoReader {
                 format!("read past the last frame ({} frames)", self.frames),
             ));
         }
-        let got = self
+        let grabbed = self
             .capture
-            .read(&mut self.buffer)
+            .grab()
             .map_err(|e| video_err(&self.path, format!("frame {i}: cannot decode: {e}")))?;
-        if !got || self.buffer.empty() {
+        if !grabbed {
             return Err(self.ended_early(i));
         }
         let msec = self
             .capture
             .get(CAP_PROP_POS_MSEC)
             .map_err(|e| video_err(&self.path, format!("frame {i}: no time: {e}")))?;
+        self.next += 1;
         // OpenCV reports 0 for frames it drains from the decoder after the last packet (the
         // delayed frames of a stream with B-frames): no time known.
-        let time_s = (i == 0 || msec != 0.0).then_some(msec * 1e-3);
+        Ok((i == 0 || msec != 0.0).then_some(msec * 1e-3))
+    }
+
+    /// Decode the next frame into the reader's buffer and check its size; its container time
+    /// as [`VideoReader::read`] gives it.
+    fn decode(&mut self) -> Result<Option<f64>> {
+        let time_s = self.read_time()?;
+        let i = self.next - 1;
+        let got = self
+            .capture
+            .retrieve(&mut self.buffer, 0)
+            .map_err(|e| video_err(&self.path, format!("frame {i}: cannot decode: {e}")))?;
+        if !got || self.buffer.empty() {
+            return Err(self.ended_early(i));
+        }
         let (w, h) = (self.buffer.cols() as usize, self.buffer.rows() as usize);
         if (w, h) != (self.width, self.height) || self.buffer.channels() != 3 {
             return Err(video_err(
@@ -228,7 +224,6 @@ impl VideoReader {
                 ),
             ));
         }
-        self.next += 1;
         Ok(time_s)
     }
 
