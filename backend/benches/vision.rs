@@ -95,8 +95,9 @@ fn end_to_end() {
     use kiwi_fixtures::scenario::Scenario;
     use kiwi_fixtures::session::{SessionOptions, write_session};
 
-    // Shortest survey that covers the table, the walking path and back (s): maps from less
-    // are a few keyframes (a 1 s survey maps ~15 frames and placed a front stream ~0.95 m off).
+    // Shortest survey the simulator's scenario is meant for (s): its phases (the table, the
+    // walking path and back) scale with the episode, so a shorter one rushes them past in a few
+    // frames (a 1 s survey mapped ~15 frames and placed a front stream ~0.95 m off).
     const MEANINGFUL_SURVEY_S: f64 = 15.0;
     // Mapping (survey) episode length, and the tabletop and walk episodes' length (s).
     let seconds = env_f64("KIWI_BENCH_VISION_SECONDS", 1.0);
@@ -136,10 +137,10 @@ fn end_to_end() {
     );
     if seconds < MEANINGFUL_SURVEY_S {
         println!(
-            "  NOTE: a {seconds} s mapping episode covers a fraction of the survey (the table, the \
-             walking path and back take {MEANINGFUL_SURVEY_S} s): its maps are a few keyframes \
-             and the figures below say little; set KIWI_BENCH_VISION_SECONDS={MEANINGFUL_SURVEY_S} \
-             or more for the acceptance run"
+            "  NOTE: a {seconds} s mapping episode rushes the survey (the table, the walking path \
+             and back; meant to last {MEANINGFUL_SURVEY_S} s or more) past in a few frames: its \
+             maps hold few keyframes and the figures below say little; set \
+             KIWI_BENCH_VISION_SECONDS={MEANINGFUL_SURVEY_S} or more for the acceptance run"
         );
     }
     let mapping = write("mapping", Scenario::Survey, seconds);
