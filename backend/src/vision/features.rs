@@ -425,7 +425,33 @@ impl OrbExtractor {
                 camera,
                 keypoints,
                 self.scale_factor,
-                self.affine_adapted,
+                PatchShape::from_options(self.affine_adapted),
+            )?)),
+            None => Ok(None),
+        }
+    }
+
+    /// Rectified descriptors of given keypoints on patches warped by a fixed affine `shape`
+    /// (determinant 1; patch coordinates `(u, v)` look along `shape · (u, v)` of the tangent
+    /// plane): the keypoints' surroundings as a view tilted against them would see them, to
+    /// measure how descriptors survive a change of viewing direction. `None` per keypoint
+    /// whose warped patch leaves the field of view; `None` overall without rectified
+    /// descriptors.
+    pub fn describe_warped(
+        &mut self,
+        image: &GrayImage,
+        camera: &dyn CameraModel,
+        keypoints: &[Keypoint],
+        shape: Matrix2<f64>,
+    ) -> Result<Option<Vec<Option<Descriptor>>>> {
+        match self.describer.as_mut() {
+            Some(d) => Ok(Some(describe_rectified(
+                d,
+                image,
+                camera,
+                keypoints,
+                self.scale_factor,
+                PatchShape::Fixed(shape),
             )?)),
             None => Ok(None),
         }
@@ -448,7 +474,7 @@ impl OrbExtractor {
             camera,
             &features.keypoints,
             self.scale_factor,
-            self.affine_adapted,
+            PatchShape::from_options(self.affine_adapted),
         )?;
         let (keypoints, descriptors) = features
             .keypoints
@@ -821,6 +847,27 @@ fn affine_shape(
     matches!(shape_step(&m, &trial.shape), ShapeStep::Settled).then_some(trial.shape)
 }
 
+/// How a rectified patch is shaped before it is described.
+#[derive(Debug, Clone, Copy)]
+enum PatchShape {
+    /// The plain gnomonic view along the bearing.
+    Plain,
+    /// Normalised to an isotropic second-moment matrix ([`OrbOptions::affine_adapted`]).
+    Adapted,
+    /// Warped by this affine shape (determinant 1).
+    Fixed(Matrix2<f64>),
+}
+
+impl PatchShape {
+    fn from_options(affine_adapted: bool) -> Self {
+        if affine_adapted {
+            Self::Adapted
+        } else {
+            Self::Plain
+        }
+    }
+}
+
 /// Rectified ORB descriptors of `keypoints` (see [`OrbOptions::rectified`]): around each
 /// keypoint's bearing a [`RECTIFIED_PATCH`]-pixel gnomonic view is resampled from the raw
 /// image (affine-normalised when `affine_adapted`, see [`OrbOptions::affine_adapted`]),
@@ -832,8 +879,9 @@ fn describe_rectified(
     camera: &dyn CameraModel,
     keypoints: &[Keypoint],
     scale_factor: f64,
-    affine_adapted: bool,
+    shape: PatchShape,
 ) -> Result<Vec<Option<Descriptor>>> {
+    let affine_adapted = matches!(shape, PatchShape::Adapted);
     let n = keypoints.len();
     if n == 0 {
         return Ok(Vec::new());
@@ -866,7 +914,10 @@ fn describe_rectified(
             e1,
             e2,
             step,
-            shape: Matrix2::identity(),
+            shape: match shape {
+                PatchShape::Fixed(m) => m,
+                PatchShape::Plain | PatchShape::Adapted => Matrix2::identity(),
+            },
         };
         if !frame.sample_patch(image, camera, &mut nodes, &mut patch) {
             continue;

@@ -8,6 +8,7 @@ use std::path::{Path, PathBuf};
 
 use kiwi_backend::vision::align::{Sim3, umeyama};
 use kiwi_backend::vision::episode::LensStream;
+use kiwi_backend::vision::features::{Descriptor, OrbExtractor};
 use kiwi_backend::vision::localize::{Localizer, LocalizerOptions, RelocalizationTrace};
 use kiwi_backend::vision::map::VisualMap;
 use kiwi_core::camera::CameraModel;
@@ -15,7 +16,7 @@ use kiwi_core::geometry::Pose;
 use kiwi_fixtures::scenario::Scenario;
 use kiwi_fixtures::scene::{RoomKind, Scene, SceneOptions};
 use kiwi_fixtures::session::{SessionOptions, write_session};
-use nalgebra::{Point3, Quaternion, Translation3, UnitQuaternion, Vector3};
+use nalgebra::{Matrix2, Point3, Quaternion, Translation3, UnitQuaternion, Vector3};
 
 /// One simulated episode of a room: which scenario, how long, at what rate and brightness.
 #[derive(Debug, Clone, Copy)]
@@ -195,7 +196,64 @@ pub struct DescriptorDiagnosis {
     /// Keypoints with a landmark projection within reach when every projection is shifted by
     /// [`CHANCE_SHIFT_PX`]: how many of `correct_possible` proximity alone gives.
     pub by_chance: usize,
+    /// Every correct pair's surface and viewing geometry with its descriptor distance.
+    pub pairs: Vec<PairGeometry>,
 }
+
+/// One correct pair, against the truth: on what surface its landmark lies and how the query
+/// sees it compared with the map's views.
+#[derive(Debug, Clone)]
+pub struct PairGeometry {
+    /// The surface (room face or object face) the landmark lies on.
+    pub surface: String,
+    /// Angle (deg) at the landmark between the query's ray and the nearest observing
+    /// keyframe's.
+    pub angle_deg: f64,
+    /// The query's distance to the landmark over that keyframe's (scale change).
+    pub distance_ratio: f64,
+    /// Pyramid level of the query keypoint.
+    pub octave: i32,
+    /// Hamming distance to the landmark's nearest descriptor.
+    pub distance: u32,
+    /// The same with the query keypoint also described on the simulated tilts
+    /// ([`SIMULATED_TILTS`]): the least distance over its plain and warped descriptors.
+    pub warped_distance: u32,
+    /// A pair proximity alone gives (projections shifted by [`CHANCE_SHIFT_PX`]), not a
+    /// correct one.
+    pub by_chance: bool,
+}
+
+/// A short name of the surface a ray hit: a room face, or an object's face with the object's
+/// size (so a table top, a carton and a cupboard can be told apart).
+fn surface_label(scene: &Scene, hit: &kiwi_fixtures::scene::Hit) -> String {
+    const FACES: [&str; 6] = ["-x", "+x", "-y", "+y", "-z", "+z"];
+    let face = FACES.get(hit.face).copied().unwrap_or("?");
+    match hit.object {
+        None => match hit.face {
+            4 => "floor".into(),
+            5 => "ceiling".into(),
+            _ => format!("wall {face}"),
+        },
+        Some(i) => scene
+            .boxes
+            .get(i)
+            .map_or(format!("object {i} {face}"), |b| {
+                format!(
+                    "object {i} ({:.2}x{:.2}x{:.2} m) {face}",
+                    b.max[0] - b.min[0],
+                    b.max[1] - b.min[1],
+                    b.max[2] - b.min[2]
+                )
+            }),
+    }
+}
+
+/// Tilts (ratio of the axes) of the views simulated on the query's patches: about 45° and 60°
+/// of viewing-direction change on a surface seen face-on.
+const SIMULATED_TILTS: [f64; 2] = [std::f64::consts::SQRT_2, 2.0];
+
+/// Directions of tilt simulated per tilt (evenly over a half turn).
+const SIMULATED_DIRECTIONS: usize = 4;
 
 /// Height above the floor (m) within which a landmark counts as on it (map error).
 const FLOOR_BAND_M: f64 = 0.02;
@@ -265,7 +323,7 @@ pub fn diagnose_attempt(
     let camera = &stream.camera;
     // Visible landmarks and their true projections.
     let origin = world_from_cam.translation.vector;
-    let projections: Vec<Option<nalgebra::Point2<f64>>> = map
+    let surfaces: Vec<Option<kiwi_fixtures::scene::Hit>> = map
         .landmarks
         .iter()
         .map(|l| {
@@ -283,7 +341,16 @@ pub fn diagnose_attempt(
                 [origin.x as f32, origin.y as f32, origin.z as f32],
                 [dir.x as f32, dir.y as f32, dir.z as f32],
             );
-            (f64::from(hit.distance) >= VISIBLE_DEPTH_FRACTION * dist).then_some(px)
+            (f64::from(hit.distance) >= VISIBLE_DEPTH_FRACTION * dist).then_some(hit)
+        })
+        .collect();
+    let projections: Vec<Option<nalgebra::Point2<f64>>> = map
+        .landmarks
+        .iter()
+        .zip(&surfaces)
+        .map(|(l, hit)| {
+            hit.as_ref()?;
+            camera.project(&(cam_from_map * Point3::from(Vector3::from(l.position))).coords)
         })
         .collect();
     let kps = &trace.features.keypoints;
@@ -309,15 +376,82 @@ pub fn diagnose_attempt(
     let correct_possible = right.iter().flatten().count();
     // Descriptor distances of the correct pairs: every landmark's descriptors (representative
     // and keyframe views).
-    let mut views: Vec<Vec<kiwi_backend::vision::features::Descriptor>> =
+    let mut views: Vec<Vec<Descriptor>> =
         map.landmarks.iter().map(|l| vec![l.descriptor]).collect();
+    // Per landmark, the map-frame centres of the keyframes that observe it.
+    let mut observers: Vec<Vec<Vector3<f64>>> = vec![Vec::new(); map.landmarks.len()];
     for kf in &map.keyframes {
+        let centre = kf
+            .cam_from_map
+            .to_pose()
+            .unwrap()
+            .inverse()
+            .translation
+            .vector;
         for f in &kf.features {
             if let Some(v) = f.landmark.and_then(|l| views.get_mut(l as usize)) {
                 v.push(f.descriptor);
             }
+            if let Some(o) = f.landmark.and_then(|l| observers.get_mut(l as usize)) {
+                o.push(centre);
+            }
         }
     }
+    let query_centre = cam_from_map.inverse().translation.vector;
+    // The query's keypoints described again on patches warped as views tilted against them
+    // would see them (ASIFT-style simulated tilts), to measure what simulating the view
+    // change would recover.
+    let mut extractor = OrbExtractor::new(&options.orb).unwrap();
+    let mut warped: Vec<Vec<Option<Descriptor>>> = Vec::new();
+    for tilt in SIMULATED_TILTS {
+        for k in 0..SIMULATED_DIRECTIONS {
+            let phi = std::f64::consts::PI * k as f64 / SIMULATED_DIRECTIONS as f64;
+            let r = nalgebra::Rotation2::new(phi).into_inner();
+            let shape = r * Matrix2::new(tilt.sqrt(), 0.0, 0.0, 1.0 / tilt.sqrt()) * r.transpose();
+            if let Some(d) = extractor
+                .describe_warped(&image, camera, kps, shape)
+                .unwrap()
+            {
+                warped.push(d);
+            }
+        }
+    }
+    let warped_distance = |kp: usize, l: usize| {
+        warped
+            .iter()
+            .filter_map(|w| w[kp].as_ref())
+            .flat_map(|q| views[l].iter().map(|d| d.distance(q)))
+            .min()
+            .unwrap_or(u32::MAX)
+    };
+    // A pair's geometry: the observing keyframe whose ray to the landmark is nearest the
+    // query's, that angle and the distance ratio (query over keyframe), and the surface.
+    let pair_geometry = |kp: usize, l: usize, distance: u32, by_chance: bool| {
+        let position = Vector3::from(map.landmarks[l].position);
+        let to_query = query_centre - position;
+        let (angle_deg, distance_ratio) = observers[l]
+            .iter()
+            .map(|c| {
+                let to_kf = c - position;
+                (
+                    to_kf.angle(&to_query).to_degrees(),
+                    to_query.norm() / to_kf.norm().max(1e-9),
+                )
+            })
+            .min_by(|a, b| a.0.total_cmp(&b.0))
+            .unwrap_or((f64::NAN, f64::NAN));
+        PairGeometry {
+            surface: surfaces[l]
+                .as_ref()
+                .map_or(String::new(), |h| surface_label(scene, h)),
+            angle_deg,
+            distance_ratio,
+            octave: kps[kp].octave,
+            distance,
+            warped_distance: distance.min(warped_distance(kp, l)),
+            by_chance,
+        }
+    };
     let limit = options.matching.max_distance;
     let mut diag = DescriptorDiagnosis::default();
     let (mut dc, mut dother) = (Vec::new(), Vec::new());
@@ -337,6 +471,7 @@ pub fn diagnose_attempt(
             rank += usize::from(d < d_right);
             other = other.min(d);
         }
+        diag.pairs.push(pair_geometry(i, right, d_right, false));
         diag.within_limit += usize::from(d_right <= limit);
         diag.nearest += usize::from(rank == 0);
         diag.top3 += usize::from(rank < 3);
@@ -344,10 +479,20 @@ pub fn diagnose_attempt(
         dother.push(other);
     }
     let shift = nalgebra::Vector2::new(CHANCE_SHIFT_PX, CHANCE_SHIFT_PX);
-    diag.by_chance = kps
-        .iter()
-        .filter(|kp| nearest_within(&kp.pixel, shift).is_some())
-        .count();
+    // The pairs proximity alone gives (projections shifted), with their descriptor distance:
+    // the baseline the correct pairs' figures are read against.
+    for (i, kp) in kps.iter().enumerate() {
+        if let Some(l) = nearest_within(&kp.pixel, shift) {
+            let q = &trace.features.descriptors[i];
+            let d = views[l]
+                .iter()
+                .map(|d| d.distance(q))
+                .min()
+                .unwrap_or(u32::MAX);
+            diag.pairs.push(pair_geometry(i, l, d, true));
+            diag.by_chance += 1;
+        }
+    }
     dc.sort_unstable();
     dother.sort_unstable();
     diag.median_correct = dc.get(dc.len() / 2).copied().unwrap_or(0);
@@ -471,6 +616,7 @@ pub fn describe_attempt(d: &AttemptDiagnosis) -> String {
         "\n    correct pairs' descriptors: {} pairs ({} by proximity alone), {} within the limit, {} nearest, {} among the nearest 3; median distance {} (nearest other landmark {})",
         d.correct_possible, c.by_chance, c.within_limit, c.nearest, c.top3, c.median_correct, c.median_other
     ));
+    s.push_str(&describe_pairs(&c.pairs));
     s.push_str(&match d.true_support {
         Some((n, e)) => {
             format!("\n    guided densification from the true pose: {n} inliers, error {e:.3} m")
@@ -505,5 +651,81 @@ pub fn describe_attempt(d: &AttemptDiagnosis) -> String {
             ));
         }
     }
+    s
+}
+
+/// Correct pairs grouped by surface, by viewing angle and by scale change: count and median
+/// descriptor distance per group, beside the same for the pairs proximity alone gives.
+pub fn describe_pairs(pairs: &[PairGeometry]) -> String {
+    fn group(
+        out: &mut String,
+        title: &str,
+        pairs: &[PairGeometry],
+        key: impl Fn(&PairGeometry) -> String,
+    ) {
+        type Group = (Vec<u32>, Vec<u32>, Vec<u32>, Vec<u32>);
+        let mut groups: std::collections::BTreeMap<String, Group> = Default::default();
+        for p in pairs {
+            let g = groups.entry(key(p)).or_default();
+            if p.by_chance {
+                g.1.push(p.distance);
+                g.3.push(p.warped_distance);
+            } else {
+                g.0.push(p.distance);
+                g.2.push(p.warped_distance);
+            }
+        }
+        let mut rows: Vec<(String, Group)> = groups.into_iter().collect();
+        rows.sort_by(|a, b| (b.1).0.len().cmp(&(a.1).0.len()).then(a.0.cmp(&b.0)));
+        let median = |d: &mut Vec<u32>| {
+            d.sort_unstable();
+            d.get(d.len() / 2).map_or("-".to_string(), u32::to_string)
+        };
+        out.push_str(&format!("\n    by {title}:"));
+        let within = |d: &[u32]| d.iter().filter(|&&x| x <= WITHIN_BITS).count();
+        for (k, (mut d, mut c, mut dw, mut cw)) in rows.into_iter().take(8) {
+            out.push_str(&format!(
+                " [{k}: {} pairs, median {} / tilted {}, {} / {} within {WITHIN_BITS}; by chance {}, median {} / {}, {} / {} within]",
+                d.len(),
+                median(&mut d),
+                median(&mut dw),
+                within(&d),
+                within(&dw),
+                c.len(),
+                median(&mut c),
+                median(&mut cw),
+                within(&c),
+                within(&cw),
+            ));
+        }
+    }
+    /// The matcher's default distance limit (bits of 256).
+    const WITHIN_BITS: u32 = 64;
+    let mut s = String::new();
+    group(&mut s, "surface", pairs, |p| p.surface.clone());
+    group(&mut s, "angle to the nearest view", pairs, |p| {
+        format!(
+            "{:>2}-{:>2} deg",
+            15 * (p.angle_deg / 15.0).floor() as i64,
+            15 * ((p.angle_deg / 15.0).floor() as i64 + 1)
+        )
+    });
+    group(&mut s, "distance ratio (query / that view)", pairs, |p| {
+        let r = p.distance_ratio;
+        if r < 0.5 {
+            "< 0.5".into()
+        } else if r < 0.8 {
+            "0.5-0.8".into()
+        } else if r <= 1.25 {
+            "0.8-1.25".into()
+        } else if r <= 2.0 {
+            "1.25-2".into()
+        } else {
+            "> 2".into()
+        }
+    });
+    group(&mut s, "query octave", pairs, |p| {
+        format!("octave {}", p.octave)
+    });
     s
 }
