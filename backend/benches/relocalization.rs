@@ -26,7 +26,10 @@
 //! `KIWI_RELOC_GUIDED_VIEWS=0` (guided matching against representative descriptors only),
 //! `KIWI_RELOC_TOPUP_BY_VIEW=0` (tracking's top-up from the keyframes nearest in centre),
 //! `KIWI_RELOC_DENSIFY_UNCERTAIN=0` (a poorly constrained tracked pose is refused at once),
-//! `KIWI_RELOC_AFFINE=1|0` (affine-normalised rectified patches in map and query, or not).
+//! `KIWI_RELOC_AFFINE=1|0` (affine-normalised rectified patches in map and query, or not),
+//! `KIWI_RELOC_GLOBAL_SHUTTER=1` (render without rolling shutter; use another
+//! `KIWI_RELOC_DIR`), `KIWI_RELOC_ROTATED_VARIANTS=1` (the diagnosis's query variants turned by
+//! a few degrees instead of tilted).
 
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 

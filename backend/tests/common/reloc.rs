@@ -59,6 +59,10 @@ pub fn room_session(
         ..SceneOptions::room(room)
     };
     o.only_lenses = vec![lens.to_string()];
+    // Diagnosis only: render without rolling shutter (global shutter) to separate its shear.
+    if std::env::var("KIWI_RELOC_GLOBAL_SHUTTER").is_ok_and(|v| v == "1") {
+        o.rolling_shutter = false;
+    }
     write_session(&o).unwrap();
     episode
 }
@@ -403,11 +407,21 @@ pub fn diagnose_attempt(
     // change would recover.
     let mut extractor = OrbExtractor::new(&options.orb).unwrap();
     let mut warped: Vec<Vec<Option<Descriptor>>> = Vec::new();
-    for tilt in SIMULATED_TILTS {
+    // `KIWI_RELOC_ROTATED_VARIANTS=1`: as many variants, each the plain patch turned by a few
+    // degrees instead of tilted (separates what the tilts model from a retry of the
+    // orientation and sampling).
+    let rotated = std::env::var("KIWI_RELOC_ROTATED_VARIANTS").is_ok_and(|v| v == "1");
+    for (t, tilt) in SIMULATED_TILTS.iter().enumerate() {
         for k in 0..SIMULATED_DIRECTIONS {
             let phi = std::f64::consts::PI * k as f64 / SIMULATED_DIRECTIONS as f64;
             let r = nalgebra::Rotation2::new(phi).into_inner();
-            let shape = r * Matrix2::new(tilt.sqrt(), 0.0, 0.0, 1.0 / tilt.sqrt()) * r.transpose();
+            let shape = if rotated {
+                let i = (t * SIMULATED_DIRECTIONS + k) as f64;
+                let degrees = 7.5 * (1.0 + (i / 2.0).floor()) * if k % 2 == 0 { 1.0 } else { -1.0 };
+                nalgebra::Rotation2::new(degrees.to_radians()).into_inner()
+            } else {
+                r * Matrix2::new(tilt.sqrt(), 0.0, 0.0, 1.0 / tilt.sqrt()) * r.transpose()
+            };
             if let Some(d) = extractor
                 .describe_warped(&image, camera, kps, shape)
                 .unwrap()
