@@ -350,6 +350,19 @@ fn the_front_end_refills_an_image_region_that_lost_its_tracks() {
     assert_eq!(refilled_off, left_off, "without the coverage rule");
 }
 
+/// The grey image a still camera at `pose` sees of `scene` (no noise, no extras).
+fn still_shot(scene: &Scene, rays: &LensRays, pose: Pose) -> GrayImage {
+    let img = render(
+        scene,
+        rays,
+        &|_t| pose,
+        0.0,
+        &Extras::default(),
+        &RenderOptions::default(),
+    );
+    GrayImage::from_rgb(img.width(), img.height(), img.as_raw()).unwrap()
+}
+
 /// A camera at `eye` whose optical axis points at `target` (image x horizontal, y down).
 fn looking_at(eye: Vector3<f64>, target: Vector3<f64>) -> Pose {
     let z = (target - eye).normalize();
@@ -469,17 +482,7 @@ fn affine_adapted_patches_survive_an_oblique_view_better_than_plain_ones() {
         let eye_b = target
             + (normal * TILT.to_radians().cos() + side * TILT.to_radians().sin()) * DISTANCE_M;
         let (pose_a, pose_b) = (looking_at(eye_a, target), looking_at(eye_b, target));
-        let shot = |pose: Pose| {
-            let img = render(
-                &scene,
-                &rays,
-                &|_t| pose,
-                0.0,
-                &Extras::default(),
-                &RenderOptions::default(),
-            );
-            GrayImage::from_rgb(img.width(), img.height(), img.as_raw()).unwrap()
-        };
+        let shot = |pose: Pose| still_shot(&scene, &rays, pose);
         let (image_a, image_b) = (shot(pose_a), shot(pose_b));
         let mask = fov_mask(&camera, FOV_MASK_MARGIN_RAD);
         let mut orb = OrbExtractor::new(&OrbOptions::default()).unwrap();
@@ -620,17 +623,7 @@ fn rectified_descriptors_of_a_turned_camera_at_the_same_place() {
             let hit = scene.intersect(to_f32(eye), to_f32(ahead.normalize()));
             let target = eye + ahead.normalize() * f64::from(hit.distance);
             let pose_a = looking_at(eye, target);
-            let shot = |pose: Pose| {
-                let img = render(
-                    &scene,
-                    &rays,
-                    &|_t| pose,
-                    0.0,
-                    &Extras::default(),
-                    &RenderOptions::default(),
-                );
-                GrayImage::from_rgb(img.width(), img.height(), img.as_raw()).unwrap()
-            };
+            let shot = |pose: Pose| still_shot(&scene, &rays, pose);
             let image_a = shot(pose_a);
             let mut orb = OrbExtractor::new(&OrbOptions::default()).unwrap();
             let found = orb.extract(&image_a, Some(&mask), &camera).unwrap();

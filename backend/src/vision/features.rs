@@ -418,6 +418,19 @@ impl OrbExtractor {
         camera: &dyn CameraModel,
         keypoints: &[Keypoint],
     ) -> Result<Option<Vec<Option<Descriptor>>>> {
+        let shape = PatchShape::from_options(self.affine_adapted);
+        self.describe_shaped(image, camera, keypoints, shape)
+    }
+
+    /// Rectified descriptors of `keypoints` on patches shaped by `shape`; `None` without
+    /// rectified descriptors.
+    fn describe_shaped(
+        &mut self,
+        image: &GrayImage,
+        camera: &dyn CameraModel,
+        keypoints: &[Keypoint],
+        shape: PatchShape,
+    ) -> Result<Option<Vec<Option<Descriptor>>>> {
         match self.describer.as_mut() {
             Some(d) => Ok(Some(describe_rectified(
                 d,
@@ -425,7 +438,7 @@ impl OrbExtractor {
                 camera,
                 keypoints,
                 self.scale_factor,
-                PatchShape::from_options(self.affine_adapted),
+                shape,
             )?)),
             None => Ok(None),
         }
@@ -444,17 +457,7 @@ impl OrbExtractor {
         keypoints: &[Keypoint],
         shape: Matrix2<f64>,
     ) -> Result<Option<Vec<Option<Descriptor>>>> {
-        match self.describer.as_mut() {
-            Some(d) => Ok(Some(describe_rectified(
-                d,
-                image,
-                camera,
-                keypoints,
-                self.scale_factor,
-                PatchShape::Fixed(shape),
-            )?)),
-            None => Ok(None),
-        }
+        self.describe_shaped(image, camera, keypoints, PatchShape::Fixed(shape))
     }
 
     /// Replace the descriptors by rectified ones when the options ask for them (keypoints

@@ -103,16 +103,7 @@ pub fn keyframe_centres(
 ) -> (Vec<Vector3<f64>>, Vec<Vector3<f64>>) {
     map.keyframes
         .iter()
-        .map(|k| {
-            let c = k
-                .cam_from_map
-                .to_pose()
-                .unwrap()
-                .inverse()
-                .translation
-                .vector;
-            (c, at(mapping_truth, k.t))
-        })
+        .map(|k| (reloc::keyframe_centre(k), at(mapping_truth, k.t)))
         .unzip()
 }
 

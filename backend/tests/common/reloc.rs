@@ -105,14 +105,10 @@ impl Alignment {
             .keyframes
             .iter()
             .map(|k| {
-                let c = k
-                    .cam_from_map
-                    .to_pose()
-                    .unwrap()
-                    .inverse()
-                    .translation
-                    .vector;
-                (c, pose_at(mapping_truth, k.t).translation.vector)
+                (
+                    keyframe_centre(k),
+                    pose_at(mapping_truth, k.t).translation.vector,
+                )
             })
             .unzip();
         Self {
@@ -141,6 +137,16 @@ impl Alignment {
             self.sim.rotation * map_from_cam.rotation,
         )
     }
+}
+
+/// A keyframe's camera centre in the map frame.
+pub fn keyframe_centre(k: &kiwi_backend::vision::map::MapKeyframe) -> Vector3<f64> {
+    k.cam_from_map
+        .to_pose()
+        .unwrap()
+        .inverse()
+        .translation
+        .vector
 }
 
 /// Largest distance (px) between a query keypoint and a landmark's true projection for the pair
@@ -385,13 +391,7 @@ pub fn diagnose_attempt(
     // Per landmark, the map-frame centres of the keyframes that observe it.
     let mut observers: Vec<Vec<Vector3<f64>>> = vec![Vec::new(); map.landmarks.len()];
     for kf in &map.keyframes {
-        let centre = kf
-            .cam_from_map
-            .to_pose()
-            .unwrap()
-            .inverse()
-            .translation
-            .vector;
+        let centre = keyframe_centre(kf);
         for f in &kf.features {
             if let Some(v) = f.landmark.and_then(|l| views.get_mut(l as usize)) {
                 v.push(f.descriptor);
