@@ -429,11 +429,20 @@ fn run_refuses_unknown_stages_and_episodes_naming_them() {
     o.resolution = 64;
     o.rate_hz = 2.0;
     o.duration_s = 2.0;
+    o.episodes = 2;
     o.head = false;
     let toml = write_session(&o).unwrap().session_toml;
     for (args, expect) in [
         (vec!["--from", "mapping"], "--from mapping: unknown stage"),
         (vec!["--force", "fuse"], "--force fuse: unknown stage"),
+        (
+            vec!["--force", "localize-left-middle"],
+            "--force localize-left-middle: unknown stage",
+        ),
+        (
+            vec!["--from", "ep009/sync"],
+            "--from ep009/sync: unknown stage",
+        ),
         (vec!["--episodes", "ep009"], "no episode `ep009`"),
     ] {
         let out = Command::new(KIWI)
@@ -452,4 +461,40 @@ fn run_refuses_unknown_stages_and_episodes_naming_them() {
         .output()
         .unwrap();
     assert!(String::from_utf8_lossy(&out.stderr).contains("expected the session's session.toml"));
+
+    // A stage named as `kiwi status` lists it, with its episode: only that one re-runs.
+    let sync_outcomes = |extra: &[&str]| -> Vec<(String, String)> {
+        let out = Command::new(KIWI)
+            .args(["run", "--json", "--only", "sync", "--session"])
+            .arg(&toml)
+            .args(extra)
+            .output()
+            .unwrap();
+        let report: serde_json::Value = serde_json::from_slice(&out.stdout)
+            .unwrap_or_else(|e| panic!("{e}: {}", String::from_utf8_lossy(&out.stderr)));
+        report["stages"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .filter(|s| s["stage"].as_str().unwrap().ends_with("/sync"))
+            .map(|s| {
+                (
+                    s["stage"].as_str().unwrap().to_string(),
+                    s["outcome"].as_str().unwrap().to_string(),
+                )
+            })
+            .collect()
+    };
+    let first = sync_outcomes(&[]);
+    assert!(first.len() >= 2, "{first:?}");
+    assert!(first.iter().all(|(_, o)| o == "ran"), "{first:?}");
+    let again = sync_outcomes(&["--force", "ep000/sync"]);
+    for (stage, outcome) in &again {
+        let expected = if stage == "ep000/sync" {
+            "ran"
+        } else {
+            "current"
+        };
+        assert_eq!(outcome, expected, "{again:?}");
+    }
 }

@@ -64,6 +64,13 @@ fn rig_gives_av_delays_and_offsets_within_a_millisecond() {
         }
         let report = analyse(&captures, &opts).unwrap();
         for ((c, t), (_, d)) in report.captures.iter().zip(&cams).zip(&distances) {
+            println!(
+                "{mode} {}: {} of {} frames decoded, A/V delay error {:.3} ms",
+                c.name,
+                c.decoded,
+                c.frames,
+                (c.av_delay_s - t.microphone.av_delay_s) * 1e3
+            );
             assert_eq!(c.speaker_distance_m, *d, "{}", c.name);
             let source = if from_file { "rig.toml" } else { "option" };
             assert_eq!(c.speaker_distance_source, source, "{}", c.name);

@@ -22,11 +22,14 @@ pub struct RunArgs {
     /// Episodes to process, comma-separated [default: all].
     #[arg(long, value_delimiter = ',')]
     pub episodes: Option<Vec<String>>,
-    /// Re-run this stage and every stage after it (sync, map, tool, localize, metric,
-    /// placement, observations, fusion, gripper, outputs, export, report).
+    /// Re-run this stage and every stage after it: a family (sync, map, tool, localize,
+    /// metric, placement, observations, fusion, gripper, head, floor, outputs, export,
+    /// report), a stage as `kiwi status` lists it (`localize-left-front`) or one episode's
+    /// (`ep001/localize-left-front`).
     #[arg(long, value_name = "STAGE")]
     pub from: Option<String>,
-    /// Re-run these stages even if their inputs are unchanged (`all` for every stage).
+    /// Re-run these stages even if their inputs are unchanged (`all` for every stage; names as
+    /// for --from).
     #[arg(long, value_name = "STAGE|all", value_delimiter = ',')]
     pub force: Vec<String>,
     /// Run only these stages; what they read must be current.

@@ -133,15 +133,28 @@ fn option_err(ctx: &SessionContext, message: String) -> BackendError {
     }
 }
 
-/// Check a stage-family name given on the command line.
-pub fn check_family(ctx: &SessionContext, flag: &str, name: &str) -> Result<()> {
-    if FAMILIES.contains(&name) || (flag == "--force" && name == "all") {
+/// Whether a stage named on the command line selects `id`: a family (`localize`: every
+/// stream's localization in every episode), one stage as `kiwi status` lists it
+/// (`localize-left-front`: that stream in every episode) or one episode's stage
+/// (`ep001/localize-left-front`, `session/map-rear`).
+pub fn selects(selector: &str, id: &StageId) -> bool {
+    selector == id.family() || selector == id.name || selector == id.label()
+}
+
+/// Check a stage named on the command line against the run's stage graph.
+fn check_selector(ctx: &SessionContext, graph: &[StageNode], flag: &str, name: &str) -> Result<()> {
+    if FAMILIES.contains(&name)
+        || (flag == "--force" && name == "all")
+        || graph.iter().any(|n| selects(name, &n.id))
+    {
         Ok(())
     } else {
         Err(option_err(
             ctx,
             format!(
-                "{flag} {name}: unknown stage; stages are {}{}",
+                "{flag} {name}: unknown stage; name a stage family ({}{}), a stage as `kiwi \
+                 status` lists it (localize-left-front) or one episode's stage \
+                 (ep001/localize-left-front)",
                 FAMILIES.join(", "),
                 if flag == "--force" { ", or all" } else { "" }
             ),
@@ -228,17 +241,17 @@ pub fn run(
     progress: &dyn Progress,
 ) -> Result<RunReport> {
     let started = Instant::now();
-    for f in &options.force {
-        check_family(ctx, "--force", f)?;
-    }
-    if let Some(f) = &options.from {
-        check_family(ctx, "--from", f)?;
-    }
-    for f in options.only.iter().flatten() {
-        check_family(ctx, "--only", f)?;
-    }
     let episodes = selected_episodes(ctx, options.episodes.as_deref())?;
     let graph = build(ctx, &episodes);
+    for f in &options.force {
+        check_selector(ctx, &graph, "--force", f)?;
+    }
+    if let Some(f) = &options.from {
+        check_selector(ctx, &graph, "--from", f)?;
+    }
+    for f in options.only.iter().flatten() {
+        check_selector(ctx, &graph, "--only", f)?;
+    }
     let forced: BTreeSet<StageId> = {
         let named: BTreeSet<StageId> = graph
             .iter()
@@ -246,7 +259,7 @@ pub fn run(
                 options
                     .force
                     .iter()
-                    .any(|f| f == "all" || f == n.id.family())
+                    .any(|f| f == "all" || selects(f, &n.id))
             })
             .map(|n| n.id.clone())
             .collect();
@@ -255,7 +268,7 @@ pub fn run(
                 &graph,
                 &graph
                     .iter()
-                    .filter(|n| n.id.family() == f)
+                    .filter(|n| selects(f, &n.id))
                     .map(|n| n.id.clone())
                     .collect(),
             ),
@@ -269,7 +282,7 @@ pub fn run(
         options
             .only
             .as_ref()
-            .is_none_or(|only| only.iter().any(|f| f == id.family()))
+            .is_none_or(|only| only.iter().any(|f| selects(f, id)))
     };
     let wanted: BTreeSet<StageId> = match &options.only {
         None => graph.iter().map(|n| n.id.clone()).collect(),
