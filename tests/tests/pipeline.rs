@@ -48,14 +48,19 @@ const BRIDGED_M: f64 = 0.02;
 const SWAP_M: f64 = 0.005;
 
 /// Run the whole pipeline once on a copy of the shared session (shared by the tests of this
-/// machine like the session itself).
+/// machine like the session itself, and re-run by each new build of this test program; the
+/// simulated session is kept until its folder under the target's tmp is removed).
 fn shared_run() -> PathBuf {
     let toml = shared_session();
     let root = toml.parent().unwrap().parent().unwrap().to_path_buf();
     let run_dir = root.join("run");
     let lock = std::fs::File::create(root.join(".run-lock")).unwrap();
     lock.lock().unwrap();
-    if !root.join("ran").is_file() {
+    // The run is reused only by the build that made it: after a code change the stages' inputs
+    // are unchanged and a resumed run would keep the old code's results.
+    let build = build_key();
+    let ran = std::fs::read_to_string(root.join("ran")).unwrap_or_default();
+    if ran != build {
         let _ = std::fs::remove_dir_all(&run_dir);
         copy_tree(toml.parent().unwrap(), &run_dir);
         let ctx = SessionContext::load(&run_dir.join("session.toml")).unwrap();
@@ -71,10 +76,22 @@ fn shared_run() -> PathBuf {
                 println!("{} failed: {reason}", s.stage);
             }
         }
-        std::fs::write(root.join("ran"), b"ok").unwrap();
+        std::fs::write(root.join("ran"), build.as_bytes()).unwrap();
     }
     lock.unlock().unwrap();
     run_dir
+}
+
+/// This test program's size and modification time: changes with every build.
+fn build_key() -> String {
+    let exe = std::env::current_exe().unwrap();
+    let meta = std::fs::metadata(&exe).unwrap();
+    let modified = meta
+        .modified()
+        .unwrap()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap();
+    format!("{} {} {}", exe.display(), meta.len(), modified.as_nanos())
 }
 
 #[test]
