@@ -137,7 +137,7 @@ fn option_err(ctx: &SessionContext, message: String) -> BackendError {
 /// stream's localization in every episode), one stage as `kiwi status` lists it
 /// (`localize-left-front`: that stream in every episode) or one episode's stage
 /// (`ep001/localize-left-front`, `session/map-rear`).
-pub fn selects(selector: &str, id: &StageId) -> bool {
+fn selects(selector: &str, id: &StageId) -> bool {
     selector == id.family() || selector == id.name || selector == id.label()
 }
 
