@@ -345,4 +345,65 @@ fn metric_and_place_commands() {
         !out.status.success() && err.contains("bad.csv") && err.contains("status"),
         "{err}"
     );
+
+    // The rolling readout: with a camera meta.json beside the IMU log, the calibration's readout
+    // of its recording mode is used, as if given with --readout, and poses are taken at their
+    // exposure centre (the result differs from a global shutter's).
+    let cal =
+        kiwi_core::artifact::UnitCalibration::load(std::path::Path::new(&d("calibration.json")))
+            .unwrap();
+    let mode = cal
+        .recording_modes
+        .iter()
+        .find(|m| m.readout_time_s.is_some_and(|r| r > 0.0))
+        .unwrap();
+    let meta = kiwi_core::layout::CameraMeta {
+        camera: "left".into(),
+        unit_id: cal.unit_id.clone(),
+        camera_model: cal.camera_model.clone(),
+        mode: mode.name.clone(),
+        fps: mode.fps,
+        lenses: vec!["front".into(), "rear".into()],
+        audio_rate_hz: 48_000,
+        source: "test".into(),
+        recording: None,
+    };
+    std::fs::write(d("meta.json"), serde_json::to_string(&meta).unwrap()).unwrap();
+    let metric = |extra: &[&str]| -> (bool, String, String) {
+        let mut args = vec![
+            "metric",
+            "--poses",
+            &d("rear.csv"),
+            "--imu",
+            &d("imu.csv"),
+            "--calibration",
+            &d("calibration.json"),
+            "--out",
+            &d("r.json"),
+            "--json",
+        ]
+        .into_iter()
+        .map(str::to_string)
+        .collect::<Vec<_>>();
+        args.extend(extra.iter().map(ToString::to_string));
+        let refs: Vec<&str> = args.iter().map(String::as_str).collect();
+        let out = kiwi(&refs);
+        let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap_or_default();
+        (
+            out.status.success(),
+            format!("{} {}", v["world_from_map"], v["scale_m_per_map_unit"]),
+            String::from_utf8_lossy(&out.stderr).into_owned(),
+        )
+    };
+    let readout = mode.readout_time_s.unwrap().to_string();
+    let (ok, from_meta, err) = metric(&[]);
+    assert!(ok, "{err}");
+    let (ok, given, err) = metric(&["--readout", &readout]);
+    assert!(ok, "{err}");
+    assert_eq!(from_meta, given);
+    let (ok, global, err) = metric(&["--readout", "0"]);
+    assert!(ok, "{err}");
+    assert_ne!(from_meta, global);
+    let (ok, _, err) = metric(&["--readout=-0.01"]);
+    assert!(!ok && err.contains("--readout"), "{err}");
 }

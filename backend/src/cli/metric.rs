@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use anyhow::Result;
 
 use anyhow::Context;
-use kiwi_backend::formats::calibration::{imu_params, load_lens_calibration};
+use kiwi_backend::formats::calibration::{imu_params, load_lens_calibration, readout_for};
 use kiwi_backend::formats::results::{
     metric_from_localizations, metric_of, placement_from_localizations, write_json,
 };
@@ -34,6 +34,10 @@ pub struct MetricArgs {
     /// IMU noise GN,GW,AN,AW overriding the calibration's (SI continuous-time densities).
     #[arg(long, value_name = "GN,GW,AN,AW")]
     pub imu_noise: Option<String>,
+    /// Rolling-shutter readout of a whole frame (s; 0 for a global shutter) [default: the
+    /// calibration's readout of the recording mode named in the `meta.json` beside --imu].
+    #[arg(long, value_name = "SECONDS")]
+    pub readout: Option<f64>,
     /// Visual noise once metric: METRES,RADIANS [default: 0.002,0.00349].
     #[arg(long, value_name = "M,RAD")]
     pub pose_sigma: Option<String>,
@@ -90,6 +94,44 @@ pub fn positive_numbers<const N: usize>(flag: &str, text: &str, what: &str) -> R
     Ok(out)
 }
 
+/// The rolling readout of the recording (s): `--readout`, else the calibration's readout of
+/// the mode in the camera's `meta.json` beside the IMU log, else 0 with a warning.
+fn readout_of(args: &MetricArgs) -> Result<f64> {
+    if let Some(r) = args.readout {
+        if !(r.is_finite() && r >= 0.0) {
+            anyhow::bail!("--readout {r}: expected the readout time in seconds, 0 or more");
+        }
+        return Ok(r);
+    }
+    let meta_path = args.imu.with_file_name("meta.json");
+    if !meta_path.is_file() {
+        eprintln!(
+            "warning: no {} beside the IMU log and no --readout: the frames are taken as \
+             global-shutter exposures (give --readout for a rolling-shutter camera)",
+            meta_path.display()
+        );
+        return Ok(0.0);
+    }
+    let text = std::fs::read_to_string(&meta_path)
+        .with_context(|| format!("cannot read {}", meta_path.display()))?;
+    let meta: kiwi_core::layout::CameraMeta = serde_json::from_str(&text)
+        .with_context(|| format!("{}: not a camera meta.json", meta_path.display()))?;
+    let unit = kiwi_core::artifact::UnitCalibration::load(&args.calibration)?;
+    match readout_for(&unit, &meta.mode, meta.fps) {
+        Some(r) => Ok(r),
+        None => {
+            eprintln!(
+                "warning: {} knows no readout for recording mode {} ({} fps): the frames are \
+                 taken as global-shutter exposures (give --readout to set it)",
+                args.calibration.display(),
+                meta.mode,
+                meta.fps
+            );
+            Ok(0.0)
+        }
+    }
+}
+
 /// Run `kiwi metric`.
 pub fn run_metric_cmd(args: &MetricArgs) -> Result<()> {
     let mut config = MetricConfig::default();
@@ -114,8 +156,11 @@ pub fn run_metric_cmd(args: &MetricArgs) -> Result<()> {
     let params = imu_params(imu_noise, Some((&args.calibration, &cal)))?;
     let rows = read_localizations(&args.poses)?;
     let imu = ImuSeries::read_csv(&args.imu)?;
-    let file = metric_from_localizations(&rows, &imu, &args.lens, &cal, &params, &config, started)
-        .with_context(|| format!("{}", args.poses.display()))?;
+    let centre = 0.5 * readout_of(args)?;
+    let file = metric_from_localizations(
+        &rows, &imu, &args.lens, &cal, &params, centre, &config, started,
+    )
+    .with_context(|| format!("{}", args.poses.display()))?;
     write_json(&args.out, &file)?;
     if args.json {
         println!("{}", serde_json::to_string(&file)?);

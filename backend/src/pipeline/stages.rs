@@ -67,7 +67,7 @@ pub fn version(kind: &StageKind) -> &'static str {
         StageKind::Map { .. } => "map-2",
         StageKind::Tool { .. } => "tool-1",
         StageKind::Localize { .. } => "localize-6",
-        StageKind::Metric { .. } => "metric-1",
+        StageKind::Metric { .. } => "metric-2",
         StageKind::Placement { .. } => "placement-1",
         StageKind::Observations { .. } => "observations-2",
         StageKind::Fusion { .. } => "fusion-4",
@@ -803,12 +803,14 @@ fn run_metric(env: &StageEnv<'_>, map: MapName) -> Result<()> {
         Lens::Front => &w.front,
         Lens::Rear => &w.rear,
     };
+    let centre = exposure_centre_delay(env.ctx, &map_ep, w)?;
     let mut file = metric_from_localizations(
         &rows,
         &imu,
         lens.name(),
         cal,
         &w.imu,
+        centre,
         &MetricConfig::default(),
         std::time::Instant::now(),
     )

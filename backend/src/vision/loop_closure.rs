@@ -620,6 +620,8 @@ pub fn close_loops(
                     tracing::debug!(
                         query = k,
                         candidate = j,
+                        t_query = t_k,
+                        t_candidate = recon.keyframes[j].t,
                         inliers = m.inliers.len(),
                         matches = m.matches,
                         scale = m.scale,
@@ -654,6 +656,8 @@ pub fn close_loops(
                     tracing::debug!(
                         query = k,
                         candidate = j,
+                        t_query = t_k,
+                        t_candidate = recon.keyframes[j].t,
                         ?why,
                         matches_needed = options.min_inliers,
                         "loop candidate rejected"
