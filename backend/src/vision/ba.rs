@@ -7,8 +7,8 @@
 //! reweighted) bounds the pull of outliers.
 //!
 //! Levenberg–Marquardt with the Schur complement: the point blocks are 3×3 and inverted in
-//! place, the reduced camera system (dense, 6 per free camera) is factored with faer's
-//! Cholesky, run sequentially so the result is the same for any thread count. Every sum runs
+//! place, the reduced camera system (dense, 6 per free camera; only its lower triangle is
+//! formed, the part the factorization reads) is factored with faer's Cholesky, run sequentially so the result is the same for any thread count. Every sum runs
 //! in observation order: the same problem gives bit-identical results.
 //!
 //! Gauge: monocular BA leaves 7 DoF free (pose of the world and scale). Fix at least one camera;
@@ -320,7 +320,9 @@ pub fn bundle_adjust(problem: &mut BaProblem, options: &BaOptions) -> Result<BaR
                 }
                 for &kb in &obs_of_point[j] {
                     let cb = cam_slot[problem.observations[kb].camera];
-                    if cb == usize::MAX || !usable[kb] {
+                    // The Cholesky factorization reads the lower triangle only: blocks above
+                    // the diagonal are never formed (half the work of the reduction).
+                    if cb == usize::MAX || cb > ca || !usable[kb] {
                         continue;
                     }
                     let block = wv * w[kb].transpose();
