@@ -459,6 +459,22 @@ pub struct CameraMeta {
     pub recording: Option<RecordingInfo>,
 }
 
+impl CameraMeta {
+    /// Read a `meta.json` (errors name the file and the field).
+    pub fn load(path: &Path) -> Result<Self> {
+        let text = read_text(path)?;
+        serde_path_to_error::deserialize(&mut serde_json::Deserializer::from_str(&text)).map_err(
+            |e| CoreError::Parse {
+                path: path.to_path_buf(),
+                format: "JSON",
+                field: e.path().to_string(),
+                message: e.inner().to_string(),
+                fix: "see docs/conventions.md for meta.json".into(),
+            },
+        )
+    }
+}
+
 /// What `kiwi ingest` read from a camera's own files, kept in `meta.json` for the record and
 /// for the checks later stages make (the lens scale against a calibration's resolution).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -849,17 +865,7 @@ impl EpisodeLayout {
 
     /// Read a camera's `meta.json`.
     pub fn read_meta(&self, camera: &str) -> Result<CameraMeta> {
-        let path = self.meta_json(camera);
-        let text = read_text(&path)?;
-        serde_path_to_error::deserialize(&mut serde_json::Deserializer::from_str(&text)).map_err(
-            |e| CoreError::Parse {
-                path: path.clone(),
-                format: "JSON",
-                field: e.path().to_string(),
-                message: e.inner().to_string(),
-                fix: "see docs/conventions.md for meta.json".into(),
-            },
-        )
+        CameraMeta::load(&self.meta_json(camera))
     }
 
     /// Write a camera's `meta.json` atomically.

@@ -6,14 +6,16 @@ use std::path::PathBuf;
 use anyhow::Result;
 
 use anyhow::Context;
-use kiwi_backend::formats::calibration::{imu_params, load_lens_calibration, readout_for};
+use kiwi_backend::formats::calibration::{exposure_centre_delay, imu_params, lens_calibration};
 use kiwi_backend::formats::results::{
     metric_from_localizations, metric_of, placement_from_localizations, write_json,
 };
 use kiwi_backend::formats::tables::read_localizations;
 use kiwi_backend::metric::MetricConfig;
 use kiwi_backend::placement::PlacementConfig;
+use kiwi_core::artifact::UnitCalibration;
 use kiwi_core::imu::ImuSeries;
+use kiwi_core::layout::CameraMeta;
 
 /// Arguments of `kiwi metric`.
 #[derive(Debug, clap::Args)]
@@ -94,14 +96,15 @@ pub fn positive_numbers<const N: usize>(flag: &str, text: &str, what: &str) -> R
     Ok(out)
 }
 
-/// The rolling readout of the recording (s): `--readout`, else the calibration's readout of
-/// the mode in the camera's `meta.json` beside the IMU log, else 0 with a warning.
-fn readout_of(args: &MetricArgs) -> Result<f64> {
+/// Time from a frame's timestamp to its exposure centre (s): half of `--readout`, else of the
+/// calibration's readout of the mode in the camera's `meta.json` beside the IMU log, else 0
+/// with a warning.
+fn exposure_centre_of(args: &MetricArgs, unit: &UnitCalibration) -> Result<f64> {
     if let Some(r) = args.readout {
         if !(r.is_finite() && r >= 0.0) {
             anyhow::bail!("--readout {r}: expected the readout time in seconds, 0 or more");
         }
-        return Ok(r);
+        return Ok(0.5 * r);
     }
     let meta_path = args.imu.with_file_name("meta.json");
     if !meta_path.is_file() {
@@ -112,14 +115,9 @@ fn readout_of(args: &MetricArgs) -> Result<f64> {
         );
         return Ok(0.0);
     }
-    let text = std::fs::read_to_string(&meta_path)
-        .with_context(|| format!("cannot read {}", meta_path.display()))?;
-    let meta: kiwi_core::layout::CameraMeta = serde_json::from_str(&text)
-        .with_context(|| format!("{}: not a camera meta.json", meta_path.display()))?;
-    let unit = kiwi_core::artifact::UnitCalibration::load(&args.calibration)?;
-    match readout_for(&unit, &meta.mode, meta.fps) {
-        Some(r) => Ok(r),
-        None => {
+    let meta = CameraMeta::load(&meta_path)?;
+    Ok(
+        exposure_centre_delay(unit, &meta.mode, meta.fps).unwrap_or_else(|| {
             eprintln!(
                 "warning: {} knows no readout for recording mode {} ({} fps): the frames are \
                  taken as global-shutter exposures (give --readout to set it)",
@@ -127,9 +125,9 @@ fn readout_of(args: &MetricArgs) -> Result<f64> {
                 meta.mode,
                 meta.fps
             );
-            Ok(0.0)
-        }
-    }
+            0.0
+        }),
+    )
 }
 
 /// Run `kiwi metric`.
@@ -152,11 +150,12 @@ pub fn run_metric_cmd(args: &MetricArgs) -> Result<()> {
         .map(|s| positive_numbers::<4>("--imu-noise", s, "four numbers GN,GW,AN,AW"))
         .transpose()?;
     let started = std::time::Instant::now();
-    let cal = load_lens_calibration(&args.calibration, &args.lens)?;
+    let unit = UnitCalibration::load(&args.calibration)?;
+    let cal = lens_calibration(&unit, &args.calibration, &args.lens)?;
     let params = imu_params(imu_noise, Some((&args.calibration, &cal)))?;
     let rows = read_localizations(&args.poses)?;
     let imu = ImuSeries::read_csv(&args.imu)?;
-    let centre = 0.5 * readout_of(args)?;
+    let centre = exposure_centre_of(args, &unit)?;
     let file = metric_from_localizations(
         &rows, &imu, &args.lens, &cal, &params, centre, &config, started,
     )
@@ -187,8 +186,9 @@ pub fn run_metric_cmd(args: &MetricArgs) -> Result<()> {
 
 /// Run `kiwi place`.
 pub fn run_place_cmd(args: &PlaceArgs) -> Result<()> {
-    let front_cal = load_lens_calibration(&args.calibration, "front")?;
-    let rear_cal = load_lens_calibration(&args.calibration, "rear")?;
+    let unit = UnitCalibration::load(&args.calibration)?;
+    let front_cal = lens_calibration(&unit, &args.calibration, "front")?;
+    let rear_cal = lens_calibration(&unit, &args.calibration, "rear")?;
     let front = read_localizations(&args.front)?;
     let rear = read_localizations(&args.rear)?;
     let front_sim = metric_of(args.front_metric.as_deref())?;

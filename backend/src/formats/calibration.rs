@@ -32,7 +32,16 @@ pub struct LensImuCalibration {
 
 /// Load `lens`'s camera–IMU calibration and the IMU noise from a unit `calibration.json`.
 pub fn load_lens_calibration(path: &Path, lens: &str) -> Result<LensImuCalibration> {
-    let cal = UnitCalibration::load(path)?;
+    lens_calibration(&UnitCalibration::load(path)?, path, lens)
+}
+
+/// `lens`'s camera–IMU calibration and the IMU noise from a loaded unit calibration (`path`,
+/// where it was read, for the errors).
+pub fn lens_calibration(
+    cal: &UnitCalibration,
+    path: &Path,
+    lens: &str,
+) -> Result<LensImuCalibration> {
     let entry = cal.lens(lens).ok_or_else(|| {
         let names: Vec<&str> = cal.lenses.iter().map(|l| l.name.as_str()).collect();
         input(

@@ -9,7 +9,7 @@ use kiwi_core::layout::{EpisodeLayout, Session, Side, ToolKind};
 use kiwi_core::tool::ToolDefinition;
 
 use crate::error::{BackendError, Result};
-use crate::formats::calibration::{LensImuCalibration, imu_params, load_lens_calibration};
+use crate::formats::calibration::{LensImuCalibration, imu_params, lens_calibration};
 use crate::fusion::preint::ImuParams;
 
 /// One wrist's unit and tool.
@@ -109,8 +109,8 @@ impl SessionContext {
                     ),
                 ));
             }
-            let front = load_lens_calibration(&calibration_path, "front")?;
-            let rear = load_lens_calibration(&calibration_path, "rear")?;
+            let front = lens_calibration(&calibration, &calibration_path, "front")?;
+            let rear = lens_calibration(&calibration, &calibration_path, "rear")?;
             let imu = imu_params(None, Some((&calibration_path, &front)))?;
             let definition = ToolDefinition::builtin(w.tool)?;
             let cam_from_tip = definition.cam_from_tip();

@@ -8,8 +8,9 @@
 //!
 //! Levenberg–Marquardt with the Schur complement: the point blocks are 3×3 and inverted in
 //! place, the reduced camera system (dense, 6 per free camera; only its lower triangle is
-//! formed, the part the factorization reads) is factored with faer's Cholesky, run sequentially so the result is the same for any thread count. Every sum runs
-//! in observation order: the same problem gives bit-identical results.
+//! formed, the part the factorization reads) is factored with faer's Cholesky, run sequentially
+//! so the result is the same for any thread count. Every sum runs in observation order: the
+//! same problem gives bit-identical results.
 //!
 //! Gauge: monocular BA leaves 7 DoF free (pose of the world and scale). Fix at least one camera;
 //! the LM damping keeps the remaining scale direction bounded.
