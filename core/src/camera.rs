@@ -56,6 +56,8 @@ pub trait CameraModel: Send + Sync {
     fn valid_fov(&self) -> f64;
 
     /// Project a direction (any non-zero length) to a pixel, or `None` outside the valid cone.
+    /// Models override it to skip the derivatives; the pixel is the one
+    /// [`CameraModel::project_with_jacobians`] gives, to the bit.
     fn project(&self, point: &Vector3<f64>) -> Option<Point2<f64>> {
         self.project_with_jacobians(point, None).map(|(p, _)| p)
     }
@@ -177,10 +179,38 @@ impl Kb4 {
     fn radial(&self, theta: f64) -> (f64, f64) {
         let k = &self.params[4..8];
         let t2 = theta * theta;
-        let poly = 1.0 + t2 * (k[0] + t2 * (k[1] + t2 * (k[2] + t2 * k[3])));
+        let poly = self.radial_poly(theta);
         let d_poly =
             1.0 + t2 * (3.0 * k[0] + t2 * (5.0 * k[1] + t2 * (7.0 * k[2] + t2 * 9.0 * k[3])));
         (theta * poly, d_poly)
+    }
+
+    /// `1 + k1 θ² + k2 θ⁴ + k3 θ⁶ + k4 θ⁸` (the radius is θ times this).
+    #[inline]
+    fn radial_poly(&self, theta: f64) -> f64 {
+        let k = &self.params[4..8];
+        let t2 = theta * theta;
+        1.0 + t2 * (k[0] + t2 * (k[1] + t2 * (k[2] + t2 * k[3])))
+    }
+
+    /// Where a direction lies for projection: on the axis (a pinhole to first order), or off it
+    /// at angle `theta`; `None` when it does not project (zero or non-finite, straight behind,
+    /// or beyond the valid cone).
+    #[inline]
+    fn ray_angle(&self, point: &Vector3<f64>) -> Option<Kb4Ray> {
+        let (x, y, z) = (point.x, point.y, point.z);
+        let r2 = x * x + y * y;
+        let r = r2.sqrt();
+        let norm = (r2 + z * z).sqrt();
+        if !positive_finite(norm) {
+            return None;
+        }
+        if r < KB4_ON_AXIS * norm {
+            // On the axis: the model is a pinhole to first order. Straight behind is invalid.
+            return (z > 0.0).then_some(Kb4Ray::OnAxis);
+        }
+        let theta = r.atan2(z);
+        (theta <= self.max_theta).then_some(Kb4Ray::OffAxis { r2, r, theta })
     }
 
     /// The first θ in `(0, π]` where `dr/dθ` stops being positive (π if it never does).
@@ -207,6 +237,15 @@ impl Kb4 {
         }
         pi
     }
+}
+
+/// A direction's place for [`Kb4`] projection (see [`Kb4::ray_angle`]).
+#[derive(Debug, Clone, Copy)]
+enum Kb4Ray {
+    /// Within [`KB4_ON_AXIS`] of the axis, in front.
+    OnAxis,
+    /// Off the axis: `r² = x² + y²`, `r`, and the angle from the axis `theta` (rad).
+    OffAxis { r2: f64, r: f64, theta: f64 },
 }
 
 impl CameraModel for Kb4 {
@@ -244,6 +283,19 @@ impl CameraModel for Kb4 {
         2.0 * self.max_theta
     }
 
+    fn project(&self, point: &Vector3<f64>) -> Option<Point2<f64>> {
+        let [fx, fy, cx, cy, ..] = self.params;
+        let (x, y, z) = (point.x, point.y, point.z);
+        match self.ray_angle(point)? {
+            Kb4Ray::OnAxis => Some(Point2::new(fx * x / z + cx, fy * y / z + cy)),
+            Kb4Ray::OffAxis { r, theta, .. } => {
+                let d = theta * self.radial_poly(theta);
+                let (ux, uy) = (x / r, y / r);
+                Some(Point2::new(fx * (d * ux) + cx, fy * (d * uy) + cy))
+            }
+        }
+    }
+
     fn project_with_jacobians(
         &self,
         point: &Vector3<f64>,
@@ -251,39 +303,28 @@ impl CameraModel for Kb4 {
     ) -> Option<(Point2<f64>, Matrix2x3<f64>)> {
         let [fx, fy, cx, cy, ..] = self.params;
         let (x, y, z) = (point.x, point.y, point.z);
-        let r2 = x * x + y * y;
-        let r = r2.sqrt();
-        let norm = (r2 + z * z).sqrt();
-        if !positive_finite(norm) {
-            return None;
-        }
-        if r < KB4_ON_AXIS * norm {
-            // On the axis: the model is a pinhole to first order. Straight behind is invalid.
-            if z <= 0.0 {
-                return None;
+        let (r2, r, theta) = match self.ray_angle(point)? {
+            Kb4Ray::OffAxis { r2, r, theta } => (r2, r, theta),
+            Kb4Ray::OnAxis => {
+                let pixel = Point2::new(fx * x / z + cx, fy * y / z + cy);
+                let j = Matrix2x3::new(
+                    fx / z,
+                    0.0,
+                    -fx * x / (z * z),
+                    0.0,
+                    fy / z,
+                    -fy * y / (z * z),
+                );
+                if let Some(dp) = d_params {
+                    dp.fill(0.0);
+                    dp[(0, 0)] = x / z;
+                    dp[(1, 1)] = y / z;
+                    dp[(0, 2)] = 1.0;
+                    dp[(1, 3)] = 1.0;
+                }
+                return Some((pixel, j));
             }
-            let pixel = Point2::new(fx * x / z + cx, fy * y / z + cy);
-            let j = Matrix2x3::new(
-                fx / z,
-                0.0,
-                -fx * x / (z * z),
-                0.0,
-                fy / z,
-                -fy * y / (z * z),
-            );
-            if let Some(dp) = d_params {
-                dp.fill(0.0);
-                dp[(0, 0)] = x / z;
-                dp[(1, 1)] = y / z;
-                dp[(0, 2)] = 1.0;
-                dp[(1, 3)] = 1.0;
-            }
-            return Some((pixel, j));
-        }
-        let theta = r.atan2(z);
-        if theta > self.max_theta {
-            return None;
-        }
+        };
         let (d, d_prime) = self.radial(theta);
         let (ux, uy) = (x / r, y / r);
         let mx = d * ux;
@@ -417,6 +458,36 @@ impl DoubleSphere {
     }
 }
 
+/// The intermediate terms of a [`DoubleSphere`] projection.
+#[derive(Debug, Clone, Copy)]
+struct DsTerms {
+    /// Distance of the point from the first sphere's centre.
+    d1: f64,
+    /// `xi d1 + z`.
+    zz: f64,
+    /// Distance from the second sphere's centre.
+    d2: f64,
+    /// The projection's denominator.
+    den: f64,
+}
+
+impl DoubleSphere {
+    /// The projection's terms, or `None` when the direction does not project.
+    #[inline]
+    fn terms(&self, point: &Vector3<f64>) -> Option<DsTerms> {
+        let [.., xi, alpha] = self.params;
+        let (x, y, z) = (point.x, point.y, point.z);
+        let d1 = (x * x + y * y + z * z).sqrt();
+        if !positive_finite(d1) || z <= -self.w2() * d1 {
+            return None;
+        }
+        let zz = xi * d1 + z;
+        let d2 = (x * x + y * y + zz * zz).sqrt();
+        let den = alpha * d2 + (1.0 - alpha) * zz;
+        positive_finite(den).then_some(DsTerms { d1, zz, d2, den })
+    }
+}
+
 impl CameraModel for DoubleSphere {
     fn kind(&self) -> CameraModelKind {
         CameraModelKind::DoubleSphere
@@ -464,23 +535,21 @@ impl CameraModel for DoubleSphere {
         2.0 * (-self.w2()).clamp(-1.0, 1.0).acos()
     }
 
+    fn project(&self, point: &Vector3<f64>) -> Option<Point2<f64>> {
+        let [fx, fy, cx, cy, ..] = self.params;
+        let (x, y) = (point.x, point.y);
+        let DsTerms { den, .. } = self.terms(point)?;
+        Some(Point2::new(fx * x / den + cx, fy * y / den + cy))
+    }
+
     fn project_with_jacobians(
         &self,
         point: &Vector3<f64>,
         d_params: Option<&mut Matrix2xX<f64>>,
     ) -> Option<(Point2<f64>, Matrix2x3<f64>)> {
         let [fx, fy, cx, cy, xi, alpha] = self.params;
-        let (x, y, z) = (point.x, point.y, point.z);
-        let d1 = (x * x + y * y + z * z).sqrt();
-        if !positive_finite(d1) || z <= -self.w2() * d1 {
-            return None;
-        }
-        let zz = xi * d1 + z;
-        let d2 = (x * x + y * y + zz * zz).sqrt();
-        let den = alpha * d2 + (1.0 - alpha) * zz;
-        if !positive_finite(den) {
-            return None;
-        }
+        let (x, y) = (point.x, point.y);
+        let DsTerms { d1, zz, d2, den } = self.terms(point)?;
         let pixel = Point2::new(fx * x / den + cx, fy * y / den + cy);
 
         let dd1 = point / d1;
@@ -584,6 +653,9 @@ impl CameraModel for Camera {
     fn valid_fov(&self) -> f64 {
         self.inner().valid_fov()
     }
+    fn project(&self, point: &Vector3<f64>) -> Option<Point2<f64>> {
+        self.inner().project(point)
+    }
     fn project_with_jacobians(
         &self,
         point: &Vector3<f64>,
@@ -606,6 +678,61 @@ pub fn bearing_from_angles(theta: f64, phi: f64) -> Unit<Vector3<f64>> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn project_gives_the_pixel_of_project_with_jacobians_to_the_bit() {
+        let kb4 = Kb4::new(
+            960,
+            960,
+            [301.5, 300.9, 479.2, 481.7, -0.021, 0.0013, -0.0004, 0.00002],
+        )
+        .unwrap();
+        let ds = DoubleSphere::new(960, 960, [310.0, 309.0, 480.5, 479.5, -0.2, 0.57]).unwrap();
+        let cameras: [(&str, &dyn CameraModel); 4] = [
+            ("kb4", &kb4),
+            ("ds", &ds),
+            ("camera kb4", &Camera::Kb4(kb4.clone())),
+            ("camera ds", &Camera::DoubleSphere(ds.clone())),
+        ];
+        // Directions over the whole sphere (a spiral), the axis and next to it, behind, zero.
+        let mut directions: Vec<Vector3<f64>> = (0..4000)
+            .map(|i| {
+                let z = 1.0 - 2.0 * (f64::from(i) + 0.5) / 4000.0;
+                let phi = f64::from(i) * 2.399_963_229_728_653;
+                let r = (1.0 - z * z).sqrt();
+                Vector3::new(r * phi.cos(), r * phi.sin(), z) * (0.3 + f64::from(i % 7))
+            })
+            .collect();
+        directions.extend([
+            Vector3::new(0.0, 0.0, 2.0),
+            Vector3::new(1e-12, -1e-12, 1.0),
+            Vector3::new(0.0, 0.0, -1.0),
+            Vector3::zeros(),
+            Vector3::new(f64::NAN, 0.0, 1.0),
+        ]);
+        for (name, cam) in cameras {
+            let mut projected = 0;
+            for d in &directions {
+                let fast = cam.project(d);
+                let full = cam.project_with_jacobians(d, None).map(|(p, _)| p);
+                match (fast, full) {
+                    (Some(a), Some(b)) => {
+                        assert!(
+                            a.x.to_bits() == b.x.to_bits() && a.y.to_bits() == b.y.to_bits(),
+                            "{name} {d:?}: {a:?} vs {b:?}"
+                        );
+                        projected += 1;
+                    }
+                    (None, None) => {}
+                    other => panic!("{name} {d:?}: {other:?}"),
+                }
+            }
+            assert!(
+                projected > 2000,
+                "{name}: only {projected} directions projected"
+            );
+        }
+    }
 
     #[test]
     fn kb4_rejects_bad_parameters() {
