@@ -157,6 +157,37 @@ const RECTIFIED_HALF_FOV_DEG: f64 = 55.0;
 pub struct RectifyMap {
     size: usize,
     source: Vec<Option<(f32, f32)>>,
+    /// The fisheye image size the taps were made for (the lens's resolution).
+    tap_size: (usize, usize),
+    /// Per rectified pixel, its bilinear taps in a `tap_size` image (`None`: off the lens).
+    taps: Vec<Option<Tap>>,
+}
+
+/// Where a rectified pixel reads a fisheye image of known size: the top-left neighbour's index,
+/// the steps to its right and lower neighbours (0 on the last column or row), and the weights.
+#[derive(Debug, Clone, Copy)]
+struct Tap {
+    index: u32,
+    right: u32,
+    down: u32,
+    fx: f32,
+    fy: f32,
+}
+
+impl Tap {
+    /// The taps of a fisheye position in a `w` × `h` image, clamped at the edges as
+    /// [`RectifyMap::rectify`] clamps them.
+    fn new(x: f32, y: f32, w: usize, h: usize) -> Option<Self> {
+        let (x0, y0) = ((x as usize).min(w - 1), (y as usize).min(h - 1));
+        let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
+        Some(Self {
+            index: u32::try_from(y0 * w + x0).ok()?,
+            right: u32::try_from(x1 - x0).ok()?,
+            down: u32::try_from((y1 - y0) * w).ok()?,
+            fx: x - x0 as f32,
+            fy: y - y0 as f32,
+        })
+    }
 }
 
 impl RectifyMap {
@@ -174,12 +205,64 @@ impl RectifyMap {
                     .filter(|p| camera.in_image(p))
                     .map(|p| (p.x as f32, p.y as f32))
             })
-            .collect();
-        Self { size, source }
+            .collect::<Vec<_>>();
+        let (w, h) = camera.resolution();
+        let tap_size = (w as usize, h as usize);
+        let mut taps: Vec<Option<Tap>> = Vec::new();
+        if tap_size.0 > 0 && tap_size.1 > 0 {
+            taps = source
+                .iter()
+                .map(|s| s.and_then(|(x, y)| Tap::new(x, y, tap_size.0, tap_size.1)))
+                .collect();
+            // An image too large for 32-bit taps is rectified the general way.
+            if taps.iter().flatten().count() != source.iter().flatten().count() {
+                taps.clear();
+            }
+        }
+        Self {
+            size,
+            source,
+            tap_size,
+            taps,
+        }
     }
 
     fn rectify(&self, img: &image::GrayImage) -> Vec<u8> {
         let (w, h) = (img.width() as usize, img.height() as usize);
+        let raw = img.as_raw();
+        if (w, h) == self.tap_size && raw.len() == w * h && self.taps.len() == self.source.len() {
+            self.rectify_with_taps(raw)
+        } else {
+            self.rectify_any(img)
+        }
+    }
+
+    /// [`RectifyMap::rectify`] of an image of the lens's own size through the precomputed taps
+    /// (the same arithmetic as [`RectifyMap::rectify_any`]).
+    fn rectify_with_taps(&self, raw: &[u8]) -> Vec<u8> {
+        self.taps
+            .iter()
+            .map(|t| match t {
+                Some(t) => {
+                    let i = t.index as usize;
+                    let p = |k: usize| f32::from(raw.get(k).copied().unwrap_or(0));
+                    let (a, b) = (p(i), p(i + t.right as usize));
+                    let (c, d) = (p(i + t.down as usize), p(i + (t.down + t.right) as usize));
+                    let top = a + (b - a) * t.fx;
+                    let bottom = c + (d - c) * t.fx;
+                    (top + (bottom - top) * t.fy).clamp(0.0, 255.0) as u8
+                }
+                None => 255,
+            })
+            .collect()
+    }
+
+    /// [`RectifyMap::rectify`] of an image of any size.
+    fn rectify_any(&self, img: &image::GrayImage) -> Vec<u8> {
+        let (w, h) = (img.width() as usize, img.height() as usize);
+        if w == 0 || h == 0 {
+            return vec![255; self.source.len()];
+        }
         let raw = img.as_raw();
         self.source
             .iter()
@@ -861,4 +944,35 @@ pub fn write_outputs(
         }
     }
     Ok(written)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The precomputed taps rectify exactly as the general path does.
+    #[test]
+    fn rectify_with_taps_matches_the_general_path() {
+        let camera = kiwi_core::camera::Kb4::new(
+            96,
+            80,
+            [30.0, 30.5, 47.5, 39.5, 0.02, -0.01, 0.003, -0.0005],
+        )
+        .map_err(|e| e.to_string())
+        .unwrap_or_else(|e| panic!("{e}"));
+        let map = RectifyMap::new(&camera);
+        assert_eq!(map.taps.len(), map.source.len());
+        let pixels: Vec<u8> = (0u32..96 * 80)
+            .map(|i| (i.wrapping_mul(2_654_435_761) >> 24) as u8)
+            .collect();
+        let img =
+            image::GrayImage::from_raw(96, 80, pixels).unwrap_or_else(|| panic!("image size"));
+        let fast = map.rectify_with_taps(img.as_raw());
+        assert_eq!(fast, map.rectify_any(&img));
+        assert_eq!(fast, map.rectify(&img));
+        assert!(fast.iter().any(|&v| v != 255));
+        // An image of another size goes the general way; an empty one is all white.
+        let empty = map.rectify(&image::GrayImage::new(0, 0));
+        assert!(empty.len() == map.source.len() && empty.iter().all(|&v| v == 255));
+    }
 }
