@@ -28,7 +28,24 @@ pub struct SweepOptions {
     pub min_support: f64,
     /// Histogram bin of the votes (m).
     pub bin_m: f64,
+    /// Every this many planes are scored first; the planes around the best of them are then
+    /// scored one by one (1 scores every plane).
+    #[serde(default = "default_coarse_step")]
+    pub coarse_step: usize,
 }
+
+fn default_coarse_step() -> usize {
+    COARSE_STEP
+}
+
+/// Coarse plane step of the sweep: two planes shift the widest-baseline view by at most
+/// 1.5 px, inside the width of a 5-sample patch's correlation peak, so a peak is never stepped
+/// over; the peaks found are then refined plane by plane.
+pub const COARSE_STEP: usize = 2;
+/// Coarse peaks refined per pixel: a pixel over a cluttered table has a peak per surface (the
+/// table, the tops of things on it) and a narrow one may be the best only at full resolution;
+/// each refined peak costs two planes (with two refined, a cluttered table lost a surface).
+const REFINED_PEAKS: usize = 4;
 
 impl Default for SweepOptions {
     fn default() -> Self {
@@ -41,6 +58,7 @@ impl Default for SweepOptions {
             min_agreement: 0.75,
             min_support: 0.06,
             bin_m: 0.02,
+            coarse_step: COARSE_STEP,
         }
     }
 }
@@ -168,17 +186,16 @@ fn pixel_height(
         let t = (z - origin.z) / dir.z;
         (t > 0.0).then(|| origin + dir * t)
     };
-    let mut scores = Vec::with_capacity(planes.len());
     let mut warped = [0.0f32; PATCH * PATCH];
-    for &plane_h in planes {
+    // The mean agreement of the views on one plane, NaN when too few views see the patch.
+    let mut score_of = |plane_h: f64| -> f32 {
         let z = camera_z - plane_h;
         let (Some(p0), Some(px), Some(py)) = (
             on_plane(&c, &d, z),
             on_plane(&c, &dx, z),
             on_plane(&cy, &dy, z),
         ) else {
-            scores.push(f32::NAN);
-            continue;
+            return f32::NAN;
         };
         let (mut sum, mut seen) = (0.0f32, 0usize);
         for view in others {
@@ -209,12 +226,13 @@ fn pixel_height(
                 seen += 1;
             }
         }
-        scores.push(if seen >= MIN_VIEWS.min(others.len()) {
+        if seen >= MIN_VIEWS.min(others.len()) {
             sum / seen as f32
         } else {
             f32::NAN
-        });
-    }
+        }
+    };
+    let scores = plane_scores(planes.len(), o.coarse_step, |k| score_of(planes[k]));
     let (best, score) = scores
         .iter()
         .enumerate()
@@ -238,4 +256,159 @@ fn pixel_height(
         }
     }
     Some(1.0 / inv_h)
+}
+
+/// The score of every plane that matters for the best one: with `coarse_step` > 1, every
+/// `coarse_step`-th plane (and the last), then every plane around the [`REFINED_PEAKS`] best
+/// coarse local maxima and the [`REFINED_PEAKS`] coarse samples that rise most above the chord
+/// of their neighbours, then the neighbours of the best plane (for its parabola). Planes not
+/// scored are NaN, as planes no view agrees on.
+fn plane_scores(n: usize, coarse_step: usize, mut score: impl FnMut(usize) -> f32) -> Vec<f32> {
+    let mut scores = vec![f32::NAN; n];
+    if coarse_step <= 1 || n <= 2 * coarse_step {
+        for (k, s) in scores.iter_mut().enumerate() {
+            *s = score(k);
+        }
+        return scores;
+    }
+    let mut scored = vec![false; n];
+    let mut score_at = |k: usize, scores: &mut [f32], scored: &mut [bool]| {
+        if !scored[k] {
+            scores[k] = score(k);
+            scored[k] = true;
+        }
+    };
+    let coarse: Vec<usize> = (0..n)
+        .step_by(coarse_step)
+        .chain((!(n - 1).is_multiple_of(coarse_step)).then_some(n - 1))
+        .collect();
+    for &k in &coarse {
+        score_at(k, &mut scores, &mut scored);
+    }
+    // Coarse local maxima, best first.
+    let mut peaks: Vec<usize> = (0..coarse.len())
+        .filter(|&i| {
+            let s = scores[coarse[i]];
+            let below = |j: Option<usize>| {
+                j.and_then(|j| coarse.get(j))
+                    .is_none_or(|&k| scores[k].partial_cmp(&s) != Some(std::cmp::Ordering::Greater))
+            };
+            s.is_finite() && below(i.checked_sub(1)) && below(Some(i + 1))
+        })
+        .map(|i| coarse[i])
+        .collect();
+    peaks.sort_by(|a, b| scores[*b].total_cmp(&scores[*a]).then(a.cmp(b)));
+    peaks.truncate(REFINED_PEAKS);
+    // A peak narrower than the coarse step on the flank of a broad one is no coarse maximum,
+    // but it lifts its coarse sample above the chord of its neighbours: the samples that rise
+    // most above their chords are refined too.
+    let mut bumps: Vec<(usize, f32)> = (1..coarse.len().saturating_sub(1))
+        .map(|i| {
+            let (a, b, c) = (
+                scores[coarse[i - 1]],
+                scores[coarse[i]],
+                scores[coarse[i + 1]],
+            );
+            (coarse[i], b - 0.5 * (a + c))
+        })
+        .filter(|(_, excess)| *excess > 0.0)
+        .collect();
+    bumps.sort_by(|a, b| b.1.total_cmp(&a.1).then(a.0.cmp(&b.0)));
+    peaks.extend(bumps.iter().take(REFINED_PEAKS).map(|(k, _)| *k));
+    for &k in &peaks {
+        let (lo, hi) = (k.saturating_sub(coarse_step - 1), (k + coarse_step).min(n));
+        for j in lo..hi {
+            score_at(j, &mut scores, &mut scored);
+        }
+    }
+    // Climb until the best plane's neighbours are scored (a neighbour may be better still).
+    loop {
+        let Some(best) = (0..n)
+            .filter(|&k| scores[k].is_finite())
+            .max_by(|&a, &b| scores[a].total_cmp(&scores[b]))
+        else {
+            return scores;
+        };
+        let unscored: Vec<usize> = [best.checked_sub(1), Some(best + 1)]
+            .into_iter()
+            .flatten()
+            .filter(|&k| k < n && !scored[k])
+            .collect();
+        if unscored.is_empty() {
+            return scores;
+        }
+        for k in unscored {
+            score_at(k, &mut scores, &mut scored);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The best plane of a coarse-to-fine search, its score and its neighbours' scores, as
+    /// [`plane_scores`] returns them.
+    fn best_of(scores: &[f32]) -> Option<(usize, f32, f32, f32)> {
+        let (best, s) = scores
+            .iter()
+            .enumerate()
+            .filter(|(_, s)| s.is_finite())
+            .max_by(|a, b| a.1.total_cmp(b.1))?;
+        let at = |k: Option<usize>| k.and_then(|k| scores.get(k)).copied().unwrap_or(f32::NAN);
+        Some((best, *s, at(best.checked_sub(1)), at(Some(best + 1))))
+    }
+
+    /// Correlation-like curves over 240 planes: a narrow true peak (2.5 or 1.7 planes wide at
+    /// 1σ: 1.3 px or more in the widest-baseline view) at every position, beside a broad
+    /// look-alike hump and a second, smaller one, with a stretch of NaN (planes no view sees).
+    /// The coarse-to-fine search finds the exhaustive search's best plane, with the same
+    /// neighbours' scores, and scores about half the planes. (A peak narrower than the coarse
+    /// step, 1.3 planes at 1σ, can hide under a hump's top: the sweep's planes are spaced so
+    /// that the patches' correlation peaks are wider than that.)
+    #[test]
+    fn coarse_to_fine_finds_the_best_plane_beside_look_alike_peaks() {
+        let n = 240;
+        let mut calls_fine = 0usize;
+        let mut calls_coarse = 0usize;
+        for centre in 0..n {
+            for (broad, width) in [(30.0f32, 2.5f32), (120.0, 1.7), (200.0, 1.7)] {
+                let curve = |k: usize| -> f32 {
+                    let x = k as f32;
+                    if (100..104).contains(&k) && centre % 7 == 0 {
+                        return f32::NAN;
+                    }
+                    let g =
+                        |top: f32, at: f32, sigma: f32| top * (-((x - at) / sigma).powi(2)).exp();
+                    let narrow = g(0.95, centre as f32 + 0.3, width);
+                    let look_alikes = g(0.8, broad, 12.0).max(g(0.7, (broad + 97.0) % 240.0, 3.0));
+                    narrow.max(look_alikes) + 1e-4 * x
+                };
+                let exhaustive = plane_scores(n, 1, |k| {
+                    calls_fine += 1;
+                    curve(k)
+                });
+                let coarse = plane_scores(n, COARSE_STEP, |k| {
+                    calls_coarse += 1;
+                    curve(k)
+                });
+                assert_eq!(
+                    best_of(&exhaustive).map(|b| (b.0, b.1)),
+                    best_of(&coarse).map(|b| (b.0, b.1)),
+                    "peak at {centre}, look-alike at {broad}"
+                );
+                let (e, c) = (best_of(&exhaustive), best_of(&coarse));
+                assert_eq!(format!("{e:?}"), format!("{c:?}"), "neighbours differ");
+            }
+        }
+        assert_eq!(calls_fine, 3 * n * n);
+        assert!(
+            (calls_coarse as f64) < 0.6 * calls_fine as f64,
+            "{calls_coarse} of {calls_fine} planes scored"
+        );
+        // Tiny sweeps are scored whole.
+        let all = plane_scores(3, COARSE_STEP, |k| k as f32);
+        assert_eq!(all, vec![0.0, 1.0, 2.0]);
+        assert!(plane_scores(0, COARSE_STEP, |_| 1.0).is_empty());
+    }
 }

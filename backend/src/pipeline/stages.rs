@@ -73,7 +73,7 @@ pub fn version(kind: &StageKind) -> &'static str {
         StageKind::Fusion { .. } => "fusion-4",
         StageKind::Gripper { .. } => "gripper-1",
         StageKind::Head { .. } => "head-2",
-        StageKind::Floor { .. } => "floor-1",
+        StageKind::Floor { .. } => "floor-2",
         StageKind::Outputs { .. } => "outputs-3",
         StageKind::Export { .. } => "export-1",
         StageKind::Report => "report-1",
