@@ -1305,12 +1305,27 @@ impl SmoothImage {
 
 /// Bilinear sample of a grey image at a sub-pixel position inside it.
 fn bilinear(img: &GrayImage, x: f64, y: f64) -> u8 {
-    let (x0, y0) = (x.floor() as u32, y.floor() as u32);
+    // `x as u32` is `x.floor() as u32` for every x (a negative one saturates to 0 either way)
+    // without the C library's `floor`.
+    let (x0, y0) = (x as u32, y as u32);
     let (fx, fy) = (x - f64::from(x0), y - f64::from(y0));
     let p = |xx: u32, yy: u32| f64::from(img.get_pixel(xx, yy)[0]);
     let top = p(x0, y0) * (1.0 - fx) + p(x0 + 1, y0) * fx;
     let bottom = p(x0, y0 + 1) * (1.0 - fx) + p(x0 + 1, y0 + 1) * fx;
-    (top * (1.0 - fy) + bottom * fy).round().clamp(0.0, 255.0) as u8
+    round_clamp_u8(top * (1.0 - fy) + bottom * fy)
+}
+
+/// `v.round().clamp(0.0, 255.0) as u8` (halves away from zero, NaN to 0) without the C
+/// library's `round` (x86-64's baseline has no rounding instruction).
+fn round_clamp_u8(v: f64) -> u8 {
+    if !(v >= 0.0) {
+        return 0;
+    }
+    if v >= 255.0 {
+        return 255;
+    }
+    let t = v as u8;
+    t + u8::from(v - f64::from(t) >= 0.5)
 }
 
 /// `cornerSubPix` (Kalibr's 5 × 5 window) on every tag corner (4 per tag, in order).
@@ -1561,4 +1576,58 @@ pub fn detect_folder(
         });
     }
     Ok(set)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rounding_to_u8_matches_round_and_clamp() {
+        let mut values = vec![
+            f64::NAN,
+            f64::NEG_INFINITY,
+            f64::INFINITY,
+            -0.0,
+            0.0,
+            -0.5,
+            -0.49999999999999994,
+            0.49999999999999994,
+            0.5,
+            254.49999999999997,
+            254.5,
+            254.99999999999997,
+            255.0,
+            255.49999999999997,
+            255.5,
+            1e300,
+            -1e300,
+        ];
+        values.extend((-2000..300_000).map(|i| f64::from(i) * 0.000_937));
+        for v in values {
+            assert_eq!(
+                round_clamp_u8(v),
+                v.round().clamp(0.0, 255.0) as u8,
+                "{v:?}"
+            );
+        }
+    }
+
+    #[test]
+    fn truncation_is_the_floor_for_pixel_positions() {
+        for x in [
+            -3.7,
+            -1.0,
+            -0.5,
+            -0.0,
+            0.0,
+            0.25,
+            1.0,
+            7.999_999,
+            1e12,
+            f64::NAN,
+        ] {
+            assert_eq!(x as u32, x.floor() as u32, "{x}");
+        }
+    }
 }

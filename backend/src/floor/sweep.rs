@@ -29,7 +29,7 @@ pub struct SweepOptions {
     /// Histogram bin of the votes (m).
     pub bin_m: f64,
     /// Every this many planes are scored first; the planes around the best of them are then
-    /// scored one by one (1 scores every plane).
+    /// scored one by one (0 or 1 scores every plane).
     #[serde(default = "default_coarse_step")]
     pub coarse_step: usize,
 }
@@ -39,8 +39,8 @@ fn default_coarse_step() -> usize {
 }
 
 /// Coarse plane step of the sweep: two planes shift the widest-baseline view by at most
-/// 1.5 px, inside the width of a 5-sample patch's correlation peak, so a peak is never stepped
-/// over; the peaks found are then refined plane by plane.
+/// 1.5 px, inside the width of a 5-sample patch's correlation peak, so such a peak is not
+/// stepped over; the peaks found are then refined plane by plane.
 pub const COARSE_STEP: usize = 2;
 /// Coarse peaks refined per pixel: a pixel over a cluttered table has a peak per surface (the
 /// table, the tops of things on it) and a narrow one may be the best only at full resolution;
@@ -359,13 +359,13 @@ mod tests {
         Some((best, *s, at(best.checked_sub(1)), at(Some(best + 1))))
     }
 
-    /// Correlation-like curves over 240 planes: a narrow true peak (2.5 or 1.7 planes wide at
-    /// 1σ: 1.3 px or more in the widest-baseline view) at every position, beside a broad
-    /// look-alike hump and a second, smaller one, with a stretch of NaN (planes no view sees).
-    /// The coarse-to-fine search finds the exhaustive search's best plane, with the same
-    /// neighbours' scores, and scores about half the planes. (A peak narrower than the coarse
-    /// step, 1.3 planes at 1σ, can hide under a hump's top: the sweep's planes are spaced so
-    /// that the patches' correlation peaks are wider than that.)
+    /// Correlation-like curves over 240 planes: a narrow true peak (falling to 1/e of its
+    /// height 2.5 or 1.7 planes from its top: 1.9 or 1.3 px of the widest-baseline view) at
+    /// every position, beside a broad look-alike hump and a second, smaller one, with a stretch
+    /// of NaN (planes no view sees). The coarse-to-fine search finds the exhaustive search's
+    /// best plane, with the same neighbours' scores, and scores about half the planes. (A peak
+    /// narrower still, 1/e at 1.3 planes, can hide under a hump's top: a 5-sample patch's
+    /// correlation peak is wider than a pixel.)
     #[test]
     fn coarse_to_fine_finds_the_best_plane_beside_look_alike_peaks() {
         let n = 240;
