@@ -1318,7 +1318,7 @@ fn bilinear(img: &GrayImage, x: f64, y: f64) -> u8 {
 /// `v.round().clamp(0.0, 255.0) as u8` (halves away from zero, NaN to 0) without the C
 /// library's `round` (x86-64's baseline has no rounding instruction).
 fn round_clamp_u8(v: f64) -> u8 {
-    if !(v >= 0.0) {
+    if v.is_nan() || v < 0.0 {
         return 0;
     }
     if v >= 255.0 {
