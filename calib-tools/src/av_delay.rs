@@ -167,9 +167,9 @@ pub struct RectifyMap {
 /// the steps to its right and lower neighbours (0 on the last column or row), and the weights.
 #[derive(Debug, Clone, Copy)]
 struct Tap {
-    index: u32,
-    right: u32,
-    down: u32,
+    index: usize,
+    right: usize,
+    down: usize,
     fx: f32,
     fy: f32,
 }
@@ -177,16 +177,16 @@ struct Tap {
 impl Tap {
     /// The taps of a fisheye position in a `w` × `h` image, clamped at the edges as
     /// [`RectifyMap::rectify`] clamps them.
-    fn new(x: f32, y: f32, w: usize, h: usize) -> Option<Self> {
+    fn new(x: f32, y: f32, w: usize, h: usize) -> Self {
         let (x0, y0) = ((x as usize).min(w - 1), (y as usize).min(h - 1));
         let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
-        Some(Self {
-            index: u32::try_from(y0 * w + x0).ok()?,
-            right: u32::try_from(x1 - x0).ok()?,
-            down: u32::try_from((y1 - y0) * w).ok()?,
+        Self {
+            index: y0 * w + x0,
+            right: x1 - x0,
+            down: (y1 - y0) * w,
             fx: x - x0 as f32,
             fy: y - y0 as f32,
-        })
+        }
     }
 }
 
@@ -208,17 +208,14 @@ impl RectifyMap {
             .collect::<Vec<_>>();
         let (w, h) = camera.resolution();
         let tap_size = (w as usize, h as usize);
-        let mut taps: Vec<Option<Tap>> = Vec::new();
-        if tap_size.0 > 0 && tap_size.1 > 0 {
-            taps = source
+        let taps: Vec<Option<Tap>> = if tap_size.0 > 0 && tap_size.1 > 0 {
+            source
                 .iter()
-                .map(|s| s.and_then(|(x, y)| Tap::new(x, y, tap_size.0, tap_size.1)))
-                .collect();
-            // An image too large for 32-bit taps is rectified the general way.
-            if taps.iter().flatten().count() != source.iter().flatten().count() {
-                taps.clear();
-            }
-        }
+                .map(|s| s.map(|(x, y)| Tap::new(x, y, tap_size.0, tap_size.1)))
+                .collect()
+        } else {
+            Vec::new()
+        };
         Self {
             size,
             source,
@@ -244,10 +241,10 @@ impl RectifyMap {
             .iter()
             .map(|t| match t {
                 Some(t) => {
-                    let i = t.index as usize;
+                    let i = t.index;
                     let p = |k: usize| f32::from(raw.get(k).copied().unwrap_or(0));
-                    let (a, b) = (p(i), p(i + t.right as usize));
-                    let (c, d) = (p(i + t.down as usize), p(i + (t.down + t.right) as usize));
+                    let (a, b) = (p(i), p(i + t.right));
+                    let (c, d) = (p(i + t.down), p(i + t.down + t.right));
                     let top = a + (b - a) * t.fx;
                     let bottom = c + (d - c) * t.fx;
                     (top + (bottom - top) * t.fy).clamp(0.0, 255.0) as u8

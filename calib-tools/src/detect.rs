@@ -1613,21 +1613,36 @@ mod tests {
         }
     }
 
+    /// The sampler gives the bytes of its `floor`/`round` formulation everywhere a caller may
+    /// ask, the border and half-pixel positions included.
     #[test]
-    fn truncation_is_the_floor_for_pixel_positions() {
-        for x in [
-            -3.7,
-            -1.0,
-            -0.5,
-            -0.0,
-            0.0,
-            0.25,
-            1.0,
-            7.999_999,
-            1e12,
-            f64::NAN,
-        ] {
-            assert_eq!(x as u32, x.floor() as u32, "{x}");
+    fn bilinear_matches_the_floor_and_round_formula() {
+        let img = GrayImage::from_fn(17, 13, |x, y| {
+            image::Luma([((x * 37 + y * 91) % 256) as u8])
+        });
+        let reference = |x: f64, y: f64| -> u8 {
+            let (x0, y0) = (x.floor() as u32, y.floor() as u32);
+            let (fx, fy) = (x - f64::from(x0), y - f64::from(y0));
+            let p = |xx: u32, yy: u32| f64::from(img.get_pixel(xx, yy)[0]);
+            let top = p(x0, y0) * (1.0 - fx) + p(x0 + 1, y0) * fx;
+            let bottom = p(x0, y0 + 1) * (1.0 - fx) + p(x0 + 1, y0 + 1) * fx;
+            (top * (1.0 - fy) + bottom * fy).round().clamp(0.0, 255.0) as u8
+        };
+        let mut positions = vec![
+            (-0.5, 3.0),
+            (-0.0, 0.0),
+            (0.0, 11.5),
+            (15.999_999, 11.999_999),
+        ];
+        for i in 0..4000 {
+            let t = f64::from(i);
+            positions.push((
+                (t * 0.618_034).rem_euclid(16.0),
+                (t * 0.414_214).rem_euclid(12.0),
+            ));
+        }
+        for (x, y) in positions {
+            assert_eq!(bilinear(&img, x, y), reference(x, y), "({x}, {y})");
         }
     }
 }
