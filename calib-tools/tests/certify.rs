@@ -158,6 +158,12 @@ fn simulated_unit_certifies_recertifies_and_flags_a_firmware_change() {
     for i in &images {
         assert!(a.folder.join("report").join(i).is_file(), "{i} missing");
     }
+    // The camera–IMU report names where its noise came from by a file the set keeps.
+    let cam_imu_page = std::fs::read_to_string(a.folder.join("report/cam_imu/report.md")).unwrap();
+    assert!(
+        cam_imu_page.contains("imu block of this set's calibration.json"),
+        "{cam_imu_page}"
+    );
     let first_calibration = std::fs::read(a.folder.join("calibration.json")).unwrap();
     // The captures are no longer needed: free the disk before the next session.
     std::fs::remove_dir_all(&cap).unwrap();

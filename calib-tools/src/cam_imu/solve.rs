@@ -36,6 +36,12 @@ const MAX_LAMBDA: f64 = 1e8;
 /// Damping increases tried per iteration: near the minimum a rejected Gauss–Newton step means
 /// the cost is flat to round-off, and more trials only cost time.
 const MAX_TRIALS: usize = 3;
+/// Pieces the normal equations and the Schur complement are accumulated in: a fixed split
+/// (not one per thread) sums in the same order on any machine, so a calibration is the same to
+/// the bit run after run and for any thread count.
+const ACCUMULATION_PIECES: usize = 8;
+/// IMU samples per cost term summed as one piece (fixed for the same reason).
+const IMU_COST_CHUNK: usize = 4096;
 
 /// Noise model of the residuals.
 #[derive(Debug, Clone, Copy)]
@@ -532,47 +538,52 @@ fn bias_prior(
     cost
 }
 
-/// Total cost of a state.
+/// Total cost of a state. Terms are evaluated in parallel and summed in a fixed order, so the
+/// same state always gives the same bits (Levenberg–Marquardt's accept/reject decisions rest
+/// on it).
 pub fn cost(problem: &Problem<'_>, state: &State) -> f64 {
     let layout = Layout::new(state);
     let w = &problem.weights;
-    let frames: f64 = problem
-        .lenses
+    let frames: Vec<(usize, usize)> = frame_items(problem);
+    let frame_costs: Vec<f64> = frames
         .par_iter()
-        .enumerate()
-        .map(|(l, obs)| {
-            obs.frames
-                .par_iter()
-                .map(|f| frame_terms(state, &layout, l, obs, f, w, None))
-                .sum::<f64>()
+        .map(|&(l, k)| {
+            let obs = &problem.lenses[l];
+            frame_terms(state, &layout, l, obs, &obs.frames[k], w, None)
         })
-        .sum();
-    let imu: f64 = problem
+        .collect();
+    let imu_costs: Vec<f64> = problem
         .imu
-        .par_chunks(4096)
+        .par_chunks(IMU_COST_CHUNK)
         .map(|c| {
             c.iter()
                 .map(|s| imu_terms(state, &layout, s, w, None))
                 .sum::<f64>()
         })
-        .sum();
-    frames + imu + bias_prior(state, &layout, w, None)
+        .collect();
+    frame_costs.iter().sum::<f64>()
+        + imu_costs.iter().sum::<f64>()
+        + bias_prior(state, &layout, w, None)
 }
 
-fn build(problem: &Problem<'_>, state: &State, layout: &Layout) -> Normal {
-    let w = &problem.weights;
-    let chunks = rayon::current_num_threads().max(1);
-    // Work items: (lens, frame) pairs and IMU sample ranges, split into one piece per thread
-    // so each thread fills one accumulator.
-    let frames: Vec<(usize, usize)> = problem
+/// Every (lens, frame) pair of the problem, in order.
+fn frame_items(problem: &Problem<'_>) -> Vec<(usize, usize)> {
+    problem
         .lenses
         .iter()
         .enumerate()
         .flat_map(|(l, o)| (0..o.frames.len()).map(move |k| (l, k)))
-        .collect();
-    let frame_piece = frames.len().div_ceil(chunks).max(1);
-    let imu_piece = problem.imu.len().div_ceil(chunks).max(1);
-    let normal = (0..chunks)
+        .collect()
+}
+
+fn build(problem: &Problem<'_>, state: &State, layout: &Layout) -> Normal {
+    let w = &problem.weights;
+    // Work items: (lens, frame) pairs and IMU sample ranges, split into a fixed number of
+    // pieces, each filling one accumulator; the accumulators are merged in piece order.
+    let frames = frame_items(problem);
+    let frame_piece = frames.len().div_ceil(ACCUMULATION_PIECES).max(1);
+    let imu_piece = problem.imu.len().div_ceil(ACCUMULATION_PIECES).max(1);
+    let pieces: Vec<Normal> = (0..ACCUMULATION_PIECES)
         .into_par_iter()
         .map(|c| {
             let mut n = Normal::new(layout.ns, layout.ng);
@@ -585,8 +596,14 @@ fn build(problem: &Problem<'_>, state: &State, layout: &Layout) -> Normal {
             }
             n
         })
-        .reduce_with(|a, b| a.merge(&b));
-    let mut normal = normal.unwrap_or_else(|| Normal::new(layout.ns, layout.ng));
+        .collect();
+    let mut pieces = pieces.into_iter();
+    let mut normal = pieces
+        .next()
+        .unwrap_or_else(|| Normal::new(layout.ns, layout.ng));
+    for piece in pieces {
+        normal = normal.merge(&piece);
+    }
     bias_prior(state, layout, w, Some(&mut normal));
     normal
 }
@@ -702,8 +719,9 @@ fn reduce(normal: &Normal, lambda: f64) -> Option<Reduced> {
     let mut ainv_b = normal.cross.clone();
     band_solve(&band, ns, &mut ainv_b, ng);
     let mut schur = Mat::<f64>::zeros(ng, ng);
-    // Bᵀ A⁻¹ B, accumulated in parallel over row blocks of the spline.
-    let rows = ns.div_ceil(rayon::current_num_threads().max(1)).max(1);
+    // Bᵀ A⁻¹ B, accumulated in parallel over a fixed number of row blocks of the spline and
+    // summed in block order.
+    let rows = ns.div_ceil(ACCUMULATION_PIECES).max(1);
     let parts: Vec<Vec<f64>> = (0..ns)
         .step_by(rows)
         .collect::<Vec<_>>()

@@ -881,7 +881,13 @@ fn run_steps(
                 ledger.failure("cam_imu.fit", e.to_string());
                 ledger.step("cam_imu", false, Some(e.to_string()), t0);
             }
-            Ok(result) => {
+            Ok(mut result) => {
+                // The noise came from a staging file that is gone once the set is made: name the
+                // set's own file instead.
+                if result.imu_noise_source.starts_with("imu block of") {
+                    result.imu_noise_source =
+                        "imu block of this set's calibration.json (the imu_noise step)".to_owned();
+                }
                 let pc = &p.cam_imu;
                 for l in &result.lenses {
                     let n = &l.name;
