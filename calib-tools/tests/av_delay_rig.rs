@@ -65,11 +65,12 @@ fn rig_gives_av_delays_and_offsets_within_a_millisecond() {
         let report = analyse(&captures, &opts).unwrap();
         for ((c, t), (_, d)) in report.captures.iter().zip(&cams).zip(&distances) {
             println!(
-                "{mode} {}: {} of {} frames decoded, A/V delay error {:.3} ms",
+                "{mode} {}: {} of {} frames decoded, A/V delay error {:.3} ms (1σ {:.3} ms)",
                 c.name,
                 c.decoded,
                 c.frames,
-                (c.av_delay_s - t.microphone.av_delay_s) * 1e3
+                (c.av_delay_s - t.microphone.av_delay_s) * 1e3,
+                c.av_delay_std_s * 1e3
             );
             assert_eq!(c.speaker_distance_m, *d, "{}", c.name);
             let source = if from_file { "rig.toml" } else { "option" };
@@ -171,6 +172,20 @@ fn a_rig_recording_without_chirps_is_refused() {
         .unwrap_err()
         .to_string();
     assert!(err.contains("same recording"), "{err}");
+    // A refresh rate that is no monitor's is refused before any frame is read.
+    for refresh_hz in [0.0, -60.0, f64::NAN, 1000.0] {
+        let o = AvDelayOptions {
+            refresh_hz,
+            ..options.clone()
+        };
+        let err = analyse(&[rig.join("30fps/cam0")], &o)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("display refresh") && err.contains("cam0"),
+            "{err}"
+        );
+    }
 }
 
 #[test]
