@@ -37,8 +37,7 @@ const MAX_LAMBDA: f64 = 1e8;
 /// the cost is flat to round-off, and more trials only cost time.
 const MAX_TRIALS: usize = 3;
 /// Pieces the normal equations and the Schur complement are accumulated in: a fixed split
-/// (not one per thread) sums in the same order on any machine, so a calibration is the same to
-/// the bit run after run and for any thread count.
+/// (not one per thread) sums in the same order on any machine and thread count.
 const ACCUMULATION_PIECES: usize = 8;
 /// IMU samples per cost term summed as one piece (fixed for the same reason).
 const IMU_COST_CHUNK: usize = 4096;
