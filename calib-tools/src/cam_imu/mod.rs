@@ -71,6 +71,9 @@ pub struct CamImuOptions {
     pub capture: PathBuf,
     /// The unit's calibration.json with the lenses' intrinsics.
     pub intrinsics: PathBuf,
+    /// How the outputs name the calibration the IMU noise came from (default: `intrinsics`'
+    /// path); a caller that reads a staged copy names the file the user keeps.
+    pub intrinsics_label: Option<String>,
     /// Kalibr aprilgrid yaml.
     pub target: PathBuf,
     /// Use every n-th frame.
@@ -102,6 +105,7 @@ impl CamImuOptions {
         Self {
             capture: capture.to_path_buf(),
             intrinsics: intrinsics.to_path_buf(),
+            intrinsics_label: None,
             target: target.to_path_buf(),
             frame_step: 1,
             keyframe_interval_s: DEFAULT_KEYFRAME_INTERVAL_S,
@@ -551,7 +555,11 @@ pub fn calibrate(o: &CamImuOptions) -> Result<CamImuResult> {
     };
     let noise = inputs.calibration.imu.clone();
     let imu_noise_source = if noise.is_some() {
-        format!("imu block of {}", o.intrinsics.display())
+        let label = o
+            .intrinsics_label
+            .clone()
+            .unwrap_or_else(|| o.intrinsics.display().to_string());
+        format!("imu block of {label}")
     } else {
         "defaults (no imu block in the calibration; run kiwi-calib imu-noise)".to_owned()
     };

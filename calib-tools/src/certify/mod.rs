@@ -873,6 +873,8 @@ fn run_steps(
         };
         let mut co = CamImuOptions::new(&cam_imu_dir, &input, &cam_imu_target);
         co.progress = false;
+        // The input is a staging file, gone once the set is made: name the set's own file.
+        co.intrinsics_label = Some("this set's calibration.json (the imu_noise step)".into());
         if !imu_ok {
             tracing::warn!("IMU noise did not certify: camera–IMU uses default noise densities");
         }
@@ -881,13 +883,7 @@ fn run_steps(
                 ledger.failure("cam_imu.fit", e.to_string());
                 ledger.step("cam_imu", false, Some(e.to_string()), t0);
             }
-            Ok(mut result) => {
-                // The noise came from a staging file that is gone once the set is made: name the
-                // set's own file instead.
-                if result.imu_noise_source.starts_with("imu block of") {
-                    result.imu_noise_source =
-                        "imu block of this set's calibration.json (the imu_noise step)".to_owned();
-                }
+            Ok(result) => {
                 let pc = &p.cam_imu;
                 for l in &result.lenses {
                     let n = &l.name;
