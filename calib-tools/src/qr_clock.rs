@@ -11,7 +11,7 @@ use image::{Rgb, RgbImage};
 
 use kiwi_core::audio::write_wav;
 use kiwi_core::io::write_atomic;
-use kiwi_core::rig::{DOUBLE_GAP_S, chirp_schedule, chirp_waveform, qr_text};
+use kiwi_core::rig::{DOUBLE_GAP_S, chirp_schedule, chirp_waveform, qr_modules};
 
 use crate::error::{CalibError, Result};
 
@@ -90,16 +90,15 @@ fn draw_digits(img: &mut RgbImage, text: &str, x: u32, y: u32, h: u32) {
 pub fn render_frame(n: u64, refresh_hz: f64) -> Result<RgbImage> {
     let (w, h) = VIDEO_SIZE;
     let mut img = RgbImage::from_pixel(w, h, Rgb([255, 255, 255]));
-    let code = qrcode::QrCode::new(qr_text(n, refresh_hz))
+    let code = qr_modules(n, refresh_hz)
         .map_err(|e| CalibError::Internal(format!("QR encoding failed: {e}")))?;
-    let modules = code.width() as u32;
-    let colors = code.to_colors();
+    let modules = code.side as u32;
     let quiet = 4;
     let module_px = (h - 40) / (modules + 2 * quiet);
     let (ox, oy) = (40 + quiet * module_px, 20 + quiet * module_px);
     for r in 0..modules {
         for c in 0..modules {
-            if colors[(r * modules + c) as usize] == qrcode::Color::Dark {
+            if code.dark[(r * modules + c) as usize] {
                 fill(
                     &mut img,
                     ox + c * module_px,
