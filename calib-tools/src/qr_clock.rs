@@ -98,7 +98,7 @@ pub fn render_frame(n: u64, refresh_hz: f64) -> Result<RgbImage> {
     let (ox, oy) = (40 + quiet * module_px, 20 + quiet * module_px);
     for r in 0..modules {
         for c in 0..modules {
-            if code.dark[(r * modules + c) as usize] {
+            if code.is_dark(r as usize, c as usize) {
                 fill(
                     &mut img,
                     ox + c * module_px,
