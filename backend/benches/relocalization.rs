@@ -23,6 +23,8 @@
 //! `KIWI_RELOC_SERVE_UNTRUSTED=1` (localize even in a map its own check refused, to see what
 //! it would give), `KIWI_RELOC_MAP_ATTEMPTS` (whole-map attempts per lost run),
 //! `KIWI_RELOC_FRAMES=1` (every query frame's status, inliers and full reason),
+//! `KIWI_RELOC_LOG` (a log filter, e.g. `kiwi_backend::vision::runs=debug` for every meeting of
+//! two runs),
 //! `KIWI_RELOC_GUIDED_VIEWS=0` (guided matching against representative descriptors only),
 //! `KIWI_RELOC_TOPUP_BY_VIEW=0` (tracking's top-up from the keyframes nearest in centre),
 //! `KIWI_RELOC_DENSIFY_UNCERTAIN=0` (a poorly constrained tracked pose is refused at once),
@@ -44,7 +46,7 @@ use common::reloc::{
 use kiwi_backend::vision::align::trajectory_error;
 use kiwi_backend::vision::episode::{LensStream, build_map_with_orb, localize_stream};
 use kiwi_backend::vision::localize::{LocalizationStatus, LocalizerOptions, is_refused_as_copy};
-use kiwi_backend::vision::runs::is_withdrawn;
+use kiwi_backend::vision::runs::{STEP_ALLOWANCE_DEPTHS, is_withdrawn, step_between};
 use kiwi_fixtures::scenario::Scenario;
 use kiwi_fixtures::scene::{RoomKind, Scene, SceneOptions};
 
@@ -94,6 +96,11 @@ fn room_kind(name: &str) -> RoomKind {
 fn main() {
     if std::env::args().any(|a| a == "--list") {
         return;
+    }
+    if let Ok(filter) = std::env::var("KIWI_RELOC_LOG") {
+        tracing_subscriber::fmt()
+            .with_env_filter(tracing_subscriber::EnvFilter::new(filter))
+            .init();
     }
     let rooms = env("KIWI_RELOC_ROOMS", "photos:1");
     let resolution: u32 = env("KIWI_RELOC_RES", "640").parse().unwrap();
@@ -282,6 +289,45 @@ fn main() {
             s.relocalization_attempts,
             s.relocalization_ms_per_attempt,
             s.relocalization_attempts_per_lost_second
+        );
+        // What the run check's carried step is on runs at the right place: every four
+        // consecutive poses of one run (the last three tracked) within 5 cm of the truth.
+        let depth = kiwi_backend::vision::localize::median_keyframe_depth(&map).unwrap();
+        let right = |r: &kiwi_backend::vision::localize::FrameLocalization| {
+            r.map_from_cam.is_some_and(|p| {
+                (alignment.world_from_cam(&p).translation.vector
+                    - common::reloc::pose_at(&qtruth, r.t).translation.vector)
+                    .norm()
+                    < 0.05
+            })
+        };
+        let centre = |r: &kiwi_backend::vision::localize::FrameLocalization| {
+            (r.t, r.map_from_cam.unwrap().translation.vector / depth)
+        };
+        let mut steps: Vec<f64> = results
+            .windows(4)
+            .filter(|w| {
+                w.iter().all(right)
+                    && w[1..]
+                        .iter()
+                        .all(|r| r.status == LocalizationStatus::Tracked)
+            })
+            .filter_map(|w| {
+                step_between(
+                    [centre(&w[1]), centre(&w[0])],
+                    [centre(&w[2]), centre(&w[3])],
+                )
+            })
+            .collect();
+        steps.sort_by(f64::total_cmp);
+        let pct = |q: f64| steps.get(((steps.len() as f64 - 1.0) * q).round() as usize);
+        println!(
+            "[{tag}] carried step within right runs (median map depth {depth:.3}): {} meetings, median {:.4}, p99 {:.4}, max {:.4} depths, {} over the allowance {STEP_ALLOWANCE_DEPTHS}",
+            steps.len(),
+            pct(0.5).copied().unwrap_or(f64::NAN),
+            pct(0.99).copied().unwrap_or(f64::NAN),
+            steps.last().copied().unwrap_or(f64::NAN),
+            steps.iter().filter(|&&x| x > STEP_ALLOWANCE_DEPTHS).count()
         );
         for (r, n) in reasons.iter().take(6) {
             println!("[{tag}]   lost {n}: {r}");

@@ -11,10 +11,18 @@
 //! recognition, the attempt a look-alike fools) before one begun on a keyframe window that place
 //! recognition proposed; both when their starts are alike (nothing tells which is right, and a
 //! frame without a pose is better than a wrong one).
+//!
+//! Two tests judge a meeting. The speed bound alone must allow a hand's fastest motion over the
+//! time between the two frames, plus noise, which over one frame interval is more than a
+//! look-alike's offset in a finely repeated room. So where both runs hold two poses next to a
+//! meeting of consecutive frames, the motion on either side is also carried across it: one
+//! constant acceleration through both runs' poses, with an offset for the later run, leaves a
+//! step that is noise for runs at the same place and the look-alike's offset for runs at two.
 
 use std::collections::BTreeSet;
 
 use kiwi_core::geometry::Pose;
+use nalgebra::{Matrix4, Matrix4x3, Vector3};
 
 use crate::vision::localize::{FrameLocalization, LocalizationStatus, RelocalizationSource};
 
@@ -30,6 +38,15 @@ pub const JUMP_ALLOWANCE_DEPTHS: f64 = 0.1;
 pub const MAX_ANGULAR_RATE_RAD_PER_S: f64 = 17.0;
 /// What localization noise may add to the rotation between two runs where they meet (rad, 10°).
 pub const ROTATION_ALLOWANCE_RAD: f64 = 0.175;
+/// Longest interval between the poses a meeting is judged on, the meeting's own included (s):
+/// consecutive frames at 30 Hz (0.033 s) or one lost frame at 60 Hz. Over one interval a
+/// change of acceleration moves even a fast reach by under 0.01 median depths (unit test); over
+/// three it is ten times that, too close to a look-alike's offset.
+pub const MAX_STEP_INTERVAL_S: f64 = 0.05;
+/// Largest step one smooth motion may leave between two runs (median depths): under half the
+/// smallest look-alike offset measured where a look-alike run met a right one (0.13 depths, a
+/// kitchen's tiles), and above what a run's own localization noise leaves (measured: docs/vision.md).
+pub const STEP_ALLOWANCE_DEPTHS: f64 = 0.06;
 
 /// How far apart two poses are where two runs meet.
 #[derive(Debug, Clone, Copy)]
@@ -120,13 +137,95 @@ pub struct Conflict {
     pub jump_depths: f64,
     /// Rotation between them (rad).
     pub rotation_rad: f64,
+    /// The step the runs' motion, carried across the meeting, leaves between them (median
+    /// depths), when that is what showed the conflict.
+    pub step_depths: Option<f64>,
+}
+
+/// A timed camera centre (s, median map depths).
+pub type TimedCentre = (f64, Vector3<f64>);
+
+/// The step one smooth motion leaves between two runs: the camera centre over time as one
+/// quadratic (constant acceleration) through the earlier run's last two poses `a` (`a[1]`
+/// before `a[0]`) and the later run's first two `b` (`b[0]` before `b[1]`), plus an offset for
+/// the later run. Four poses, four unknowns per axis: the offset is what no constant
+/// acceleration explains. `None` when the poses are not in time order or any interval between
+/// them exceeds [`MAX_STEP_INTERVAL_S`].
+pub fn step_between(a: [TimedCentre; 2], b: [TimedCentre; 2]) -> Option<f64> {
+    let times = [a[1].0, a[0].0, b[0].0, b[1].0];
+    let in_order = |w: &[f64]| {
+        let dt = w[1] - w[0];
+        dt > 0.0 && dt <= MAX_STEP_INTERVAL_S
+    };
+    if !times.windows(2).all(in_order) {
+        return None;
+    }
+    let mid = 0.5 * (a[0].0 + b[0].0);
+    // Time in units of the span, so the columns are of one size.
+    let scale = times[3] - times[0];
+    let row = |t: f64, later: f64| {
+        let tau = (t - mid) / scale;
+        [1.0, tau, tau * tau, later]
+    };
+    let rows = [
+        row(times[0], 0.0),
+        row(times[1], 0.0),
+        row(times[2], 1.0),
+        row(times[3], 1.0),
+    ];
+    let design = Matrix4::from_fn(|r, c| rows[r][c]);
+    let centres = [a[1].1, a[0].1, b[0].1, b[1].1];
+    let rhs = Matrix4x3::from_fn(|r, c| centres[r][c]);
+    let coefficients = design.lu().solve(&rhs)?;
+    Some(coefficients.row(3).norm())
+}
+
+/// The two poses of `run` nearest frame `from` (itself first), walking backwards or forwards.
+fn run_pair(
+    results: &[FrameLocalization],
+    book: &RunBook,
+    from: usize,
+    run: usize,
+    forward: bool,
+    depth: f64,
+) -> Option<[TimedCentre; 2]> {
+    let frames: Box<dyn Iterator<Item = usize>> = if forward {
+        Box::new(from..results.len())
+    } else {
+        Box::new((0..=from).rev())
+    };
+    let mut found = frames.filter_map(|k| {
+        let p = results[k].map_from_cam?;
+        (book.frame_run[k] == Some(run)).then(|| (results[k].t, p.translation.vector / depth))
+    });
+    Some([found.next()?, found.next()?])
+}
+
+/// The step the motion of two runs, carried across their meeting at frames `before` (run
+/// `run_a`) and `after` (run `run_b`), leaves between them ([`step_between`], median depths);
+/// `None` when either run has no second pose next to the meeting or the poses are too far
+/// apart in time to carry the motion.
+pub fn carried_step(
+    results: &[FrameLocalization],
+    book: &RunBook,
+    (before, after): (usize, usize),
+    (run_a, run_b): (usize, usize),
+    depth: f64,
+) -> Option<f64> {
+    if depth.is_nan() || depth <= 0.0 {
+        return None;
+    }
+    let a = run_pair(results, book, before, run_a, false, depth)?;
+    let b = run_pair(results, book, after, run_b, true, depth)?;
+    step_between(a, b)
 }
 
 /// Meetings of runs that no hand-held motion explains: consecutive posed frames (lost frames
 /// between them allowed) of different runs whose camera centres are farther apart than
-/// [`MAX_SPEED_DEPTHS_PER_S`] over the time between them plus [`JUMP_ALLOWANCE_DEPTHS`], or
-/// whose orientations differ by more than the rotation bounds allow. `depth` is the map's median
-/// keyframe-to-landmark depth (map units).
+/// [`MAX_SPEED_DEPTHS_PER_S`] over the time between them plus [`JUMP_ALLOWANCE_DEPTHS`], whose
+/// orientations differ by more than the rotation bounds allow, or, across a meeting of
+/// consecutive frames, whose motion carried across it ([`carried_step`]) leaves a step over
+/// [`STEP_ALLOWANCE_DEPTHS`]. `depth` is the map's median keyframe-to-landmark depth (map units).
 pub fn conflicts(results: &[FrameLocalization], book: &RunBook, depth: f64) -> Vec<Conflict> {
     let posed: Vec<(usize, Pose, usize)> = (results.iter().zip(&book.frame_run).enumerate())
         .filter_map(|(i, (r, run))| Some((i, r.map_from_cam?, (*run)?)))
@@ -143,12 +242,21 @@ pub fn conflicts(results: &[FrameLocalization], book: &RunBook, depth: f64) -> V
             rotation_rad,
             reachable,
         } = separation(&a, &b, dt, depth);
-        if !reachable {
+        let carried = carried_step(results, book, (i, j), (run_a, run_b), depth);
+        tracing::debug!(
+            "runs meet at frames {i} and {j}: {jump_depths:.3} depths (median depth {depth:.4}), \
+             {:.1}° in {dt:.3} s; carried step {}",
+            rotation_rad.to_degrees(),
+            carried.map_or_else(|| "not judged".to_string(), |c| format!("{c:.3} depths"))
+        );
+        let step_depths = carried.filter(|&c| c > STEP_ALLOWANCE_DEPTHS);
+        if !reachable || step_depths.is_some() {
             out.push(Conflict {
                 before: i,
                 after: j,
                 jump_depths,
                 rotation_rad,
+                step_depths: if reachable { step_depths } else { None },
             });
         }
     }
@@ -194,15 +302,22 @@ pub fn conflict_reason(
         .iter()
         .find(|c| book.frame_run[c.before] == Some(run) || book.frame_run[c.after] == Some(run))
         .map_or_else(String::new, |c| {
-            format!(
-                "; frames {} and {} are {:.2} map depths and {:.0}° apart in {:.3} s, farther \
-                 than a hand moves",
-                c.before,
-                c.after,
-                c.jump_depths,
-                c.rotation_rad.to_degrees(),
-                (results[c.after].t - results[c.before].t).abs()
-            )
+            let dt = (results[c.after].t - results[c.before].t).abs();
+            match c.step_depths {
+                Some(step) => format!(
+                    "; frames {} and {} are {:.2} map depths apart in {dt:.3} s, and the motion \
+                     on either side leaves a {step:.2}-depth step between them",
+                    c.before, c.after, c.jump_depths
+                ),
+                None => format!(
+                    "; frames {} and {} are {:.2} map depths and {:.0}° apart in {dt:.3} s, \
+                     farther than a hand moves",
+                    c.before,
+                    c.after,
+                    c.jump_depths,
+                    c.rotation_rad.to_degrees()
+                ),
+            }
         });
     format!(
         "withdrawn: the run that began at frame {} ({}) does not join the stream's other \
@@ -440,5 +555,57 @@ mod tests {
         let found = conflicts(&results, &book, 1.0);
         assert_eq!(found.len(), 1);
         assert!((found[0].rotation_rad - 1.5).abs() < 1e-9);
+    }
+
+    #[test]
+    fn a_look_alike_one_frame_away_is_found_by_its_step() {
+        use RelocalizationSource::{WholeMap, Window};
+        // 0.13 depths: within what the speed bound allows over one frame (0.2 depths at 30 Hz),
+        // the smallest look-alike offset measured in a tiled kitchen.
+        let (results, book) = two_runs(60, 30, 0.13, WholeMap, Window);
+        let found = conflicts(&results, &book, 1.0);
+        assert_eq!(found.len(), 1);
+        assert_eq!((found[0].before, found[0].after), (29, 30));
+        let step = found[0].step_depths.unwrap_or(f64::NAN);
+        assert!((step - 0.13).abs() < 1e-9, "step {step}");
+        assert_eq!(runs_to_withdraw(&found, &book), BTreeSet::from([0]));
+        let reason = conflict_reason(&results, &book, &found, 0);
+        assert!(reason.contains("0.13-depth step"), "{reason}");
+    }
+
+    #[test]
+    fn a_fast_reach_leaves_no_step() {
+        // A minimum-jerk reach of 0.4 m in 0.3 s (peak 2.5 m/s) seen at 0.6 m, at 29.97 Hz: the
+        // carried motion's step at every meeting stays under a quarter of the allowance.
+        let (distance, duration, depth, rate) = (0.4, 0.3, 0.6, 29.97);
+        let centre = |t: f64| {
+            let s = (t / duration).clamp(0.0, 1.0);
+            let x = distance * s.powi(3) * (10.0 - 15.0 * s + 6.0 * s * s);
+            (t, Vector3::new(x, 0.3 * x, 0.0) / depth)
+        };
+        let at = |k: i32| centre(f64::from(k) / rate);
+        let mut worst: f64 = 0.0;
+        for k in -6..15 {
+            let step = step_between([at(k), at(k - 1)], [at(k + 1), at(k + 2)]);
+            worst = worst.max(step.unwrap_or(f64::INFINITY));
+        }
+        assert!(worst < 0.25 * STEP_ALLOWANCE_DEPTHS, "worst step {worst}");
+    }
+
+    #[test]
+    fn no_step_is_judged_across_lost_frames() {
+        use RelocalizationSource::{WholeMap, Window};
+        let (mut results, book) = two_runs(60, 30, 0.13, WholeMap, Window);
+        // Two lost frames before the meeting: 0.1 s, too long to carry the motion across; the
+        // speed bound alone judges it, and 0.16 depths over 0.1 s is within it.
+        for r in &mut results[28..30] {
+            *r = FrameLocalization::lost(r.frame, r.t, 0, "lost".into());
+        }
+        assert_eq!(carried_step(&results, &book, (27, 30), (0, 1), 1.0), None);
+        assert!(conflicts(&results, &book, 1.0).is_empty());
+        // Nor when the later run has a single pose.
+        let (results, mut book) = two_runs(31, 30, 0.13, WholeMap, Window);
+        book.frame_run[30] = Some(1);
+        assert_eq!(carried_step(&results, &book, (29, 30), (0, 1), 1.0), None);
     }
 }
