@@ -499,30 +499,6 @@ struct Correspondence {
     bearing: Vector3<f64>,
 }
 
-/// Inliers that are independent evidence: the lesser of the distinct landmarks and the
-/// distinct image corners (pixels rounded to [`CORNER_CELL_PX`]) among them.
-fn independent_inliers(inliers: &[Correspondence]) -> usize {
-    let mut landmarks: Vec<u32> = inliers.iter().map(|c| c.landmark).collect();
-    landmarks.sort_unstable();
-    landmarks.dedup();
-    let mut corners: Vec<(i64, i64)> = inliers
-        .iter()
-        .map(|c| {
-            (
-                (c.pixel.x / CORNER_CELL_PX).floor() as i64,
-                (c.pixel.y / CORNER_CELL_PX).floor() as i64,
-            )
-        })
-        .collect();
-    corners.sort_unstable();
-    corners.dedup();
-    landmarks.len().min(corners.len())
-}
-
-/// Size of the pixel cell within which two keypoints are one image corner (px): ORB finds a
-/// corner again at the next pyramid level within about a pixel.
-const CORNER_CELL_PX: f64 = 1.0;
-
 /// A pose estimate with its support.
 struct Estimate {
     cam_from_map: Pose,
@@ -846,23 +822,6 @@ impl Localizer {
             return Err(format!(
                 "inliers clustered: spread {spread:.3} rad < {:.3}",
                 self.options.min_spread_rad
-            ));
-        }
-        Ok(())
-    }
-
-    /// A relocalization's inliers counted as independent evidence: the same image corner found
-    /// at two pyramid levels, or matched to two look-alike landmarks, and two corners matched
-    /// to one landmark, each count once ([`independent_inliers`]); at least
-    /// `min_inliers_relocalization` of them.
-    fn check_independent(&self, e: &Estimate) -> std::result::Result<(), String> {
-        let n = independent_inliers(&e.inliers);
-        let min = self.options.min_inliers_relocalization;
-        if n < min {
-            return Err(format!(
-                "{} inliers but {n} independent ones < {min} (an image corner and a landmark \
-                 count once)",
-                e.inliers.len()
             ));
         }
         Ok(())
@@ -1882,7 +1841,6 @@ impl Localizer {
         let checked = match &attempt {
             Ok(e) => self
                 .accept(e, self.options.min_inliers_relocalization)
-                .and_then(|()| self.check_independent(e))
                 .and_then(|()| self.check_view_support(e, feats)),
             Err(why) => Err(why.clone()),
         };
@@ -2008,35 +1966,5 @@ impl KeypointGrid {
             }
         }
         out.sort_unstable();
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    fn inlier(landmark: u32, x: f64, y: f64) -> Correspondence {
-        Correspondence {
-            landmark,
-            pixel: Point2::new(x, y),
-            bearing: Vector3::z(),
-        }
-    }
-
-    #[test]
-    fn a_corner_and_a_landmark_count_once() {
-        let distinct: Vec<Correspondence> = (0..10)
-            .map(|i| inlier(i, 10.0 * f64::from(i), 5.0))
-            .collect();
-        assert_eq!(independent_inliers(&distinct), 10);
-        // The same corner found at a second pyramid level (same landmark, 0.3 px away) and
-        // matched to a look-alike landmark as well; two corners matched to one landmark.
-        let mut repeated = distinct.clone();
-        repeated.push(inlier(3, 30.3, 5.2));
-        repeated.push(inlier(42, 50.1, 5.1));
-        repeated.push(inlier(7, 200.0, 80.0));
-        assert_eq!(repeated.len(), 13);
-        assert_eq!(independent_inliers(&repeated), 11);
-        assert_eq!(independent_inliers(&[]), 0);
     }
 }
