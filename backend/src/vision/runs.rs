@@ -194,10 +194,14 @@ fn run_pair(
     } else {
         Box::new((0..=from).rev())
     };
-    let mut found = frames.filter_map(|k| {
-        let p = results[k].map_from_cam?;
-        (book.frame_run[k] == Some(run)).then(|| (results[k].t, p.translation.vector / depth))
-    });
+    let t0 = results[from].t;
+    // `from` is the first pose; [`step_between`] takes a second only one interval from it.
+    let mut found = frames
+        .take_while(|&k| (results[k].t - t0).abs() <= MAX_STEP_INTERVAL_S)
+        .filter_map(|k| {
+            let p = results[k].map_from_cam?;
+            (book.frame_run[k] == Some(run)).then(|| (results[k].t, p.translation.vector / depth))
+        });
     Some([found.next()?, found.next()?])
 }
 
