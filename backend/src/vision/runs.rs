@@ -40,8 +40,8 @@ pub const MAX_ANGULAR_RATE_RAD_PER_S: f64 = 17.0;
 pub const ROTATION_ALLOWANCE_RAD: f64 = 0.175;
 /// Longest interval between the poses a meeting is judged on, the meeting's own included (s):
 /// consecutive frames at 30 Hz (0.033 s) or one lost frame at 60 Hz. Over one interval a
-/// change of acceleration moves even a fast reach by under 0.01 median depths (unit test); over
-/// three it is ten times that, too close to a look-alike's offset.
+/// change of acceleration leaves a fast reach under 0.015 median depths (unit test); over three
+/// about nine times as much (simulated), too close to a look-alike's offset.
 pub const MAX_STEP_INTERVAL_S: f64 = 0.05;
 /// Largest step one smooth motion may leave between two runs (median depths): under half the
 /// smallest look-alike offset measured where a look-alike run met a right one (0.13 depths, a
@@ -189,14 +189,16 @@ fn run_pair(
     forward: bool,
     depth: f64,
 ) -> Option<[TimedCentre; 2]> {
-    let frames: Box<dyn Iterator<Item = usize>> = if forward {
-        Box::new(from..results.len())
-    } else {
-        Box::new((0..=from).rev())
+    let next = |k: &usize| {
+        if forward {
+            (k + 1 < results.len()).then_some(k + 1)
+        } else {
+            k.checked_sub(1)
+        }
     };
     let t0 = results[from].t;
     // `from` is the first pose; [`step_between`] takes a second only one interval from it.
-    let mut found = frames
+    let mut found = std::iter::successors(Some(from), next)
         .take_while(|&k| (results[k].t - t0).abs() <= MAX_STEP_INTERVAL_S)
         .filter_map(|k| {
             let p = results[k].map_from_cam?;
@@ -608,8 +610,7 @@ mod tests {
         assert_eq!(carried_step(&results, &book, (27, 30), (0, 1), 1.0), None);
         assert!(conflicts(&results, &book, 1.0).is_empty());
         // Nor when the later run has a single pose.
-        let (results, mut book) = two_runs(31, 30, 0.13, WholeMap, Window);
-        book.frame_run[30] = Some(1);
+        let (results, book) = two_runs(31, 30, 0.13, WholeMap, Window);
         assert_eq!(carried_step(&results, &book, (29, 30), (0, 1), 1.0), None);
     }
 }
