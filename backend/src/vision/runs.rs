@@ -47,6 +47,11 @@ pub const MAX_STEP_INTERVAL_S: f64 = 0.05;
 /// smallest look-alike offset measured where a look-alike run met a right one (0.13 depths, a
 /// kitchen's tiles), and above what a run's own localization noise leaves (measured: docs/vision.md).
 pub const STEP_ALLOWANCE_DEPTHS: f64 = 0.06;
+/// Slack on every comparison of a time between frames with a bound (s): frame times are
+/// multiples of a frame interval up to rounding (six intervals at 30 Hz compute as
+/// 0.20000000000000007 s from frames 17 and 23), and a microsecond is far below any interval,
+/// so a decision never flips on how a time was rounded.
+pub const TIME_ROUNDING_S: f64 = 1e-6;
 
 /// How far apart two poses are where two runs meet.
 #[derive(Debug, Clone, Copy)]
@@ -155,7 +160,7 @@ pub fn step_between(a: [TimedCentre; 2], b: [TimedCentre; 2]) -> Option<f64> {
     let times = [a[1].0, a[0].0, b[0].0, b[1].0];
     let in_order = |w: &[f64]| {
         let dt = w[1] - w[0];
-        dt > 0.0 && dt <= MAX_STEP_INTERVAL_S
+        dt > 0.0 && dt <= MAX_STEP_INTERVAL_S + TIME_ROUNDING_S
     };
     if !times.windows(2).all(in_order) {
         return None;
@@ -199,7 +204,7 @@ fn run_pair(
     let t0 = results[from].t;
     // `from` is the first pose; [`step_between`] takes a second only one interval from it.
     let mut found = std::iter::successors(Some(from), next)
-        .take_while(|&k| (results[k].t - t0).abs() <= MAX_STEP_INTERVAL_S)
+        .take_while(|&k| (results[k].t - t0).abs() <= MAX_STEP_INTERVAL_S + TIME_ROUNDING_S)
         .filter_map(|k| {
             let p = results[k].map_from_cam?;
             (book.frame_run[k] == Some(run)).then(|| (results[k].t, p.translation.vector / depth))
@@ -358,7 +363,9 @@ pub fn runs_joining_withdrawn(
         };
         let dt = (results[j].t - results[i].t).abs();
         let sep = separation(p, &w, dt, depth);
-        dt <= MAX_JOIN_GAP_S && sep.reachable && sep.jump_depths <= MAX_JOIN_DEPTHS
+        dt <= MAX_JOIN_GAP_S + TIME_ROUNDING_S
+            && sep.reachable
+            && sep.jump_depths <= MAX_JOIN_DEPTHS
     };
     // The nearest frame from `i`, forwards or backwards, that holds a pose or a withdrawn pose.
     let nearest = |i: usize, forward: bool| -> Option<usize> {
@@ -530,6 +537,37 @@ mod tests {
         for i in 10..20 {
             results[i] = posed(i, 0.01 * i as f64 + 0.9, LocalizationStatus::Tracked);
             book.frame_run[i] = Some(other);
+        }
+        assert_eq!(
+            runs_joining_withdrawn(&results, &book, &gone, 1.0),
+            BTreeSet::from([again])
+        );
+    }
+
+    #[test]
+    fn a_run_the_join_gap_away_from_a_withdrawn_place_joins_it() {
+        use RelocalizationSource::{WholeMap, Window};
+        let (mut results, mut book) = two_runs(60, 18, 0.9, WholeMap, Window);
+        let found = conflicts(&results, &book, 1.0);
+        let runs = runs_to_withdraw(&found, &book);
+        assert_eq!(runs, BTreeSet::from([0]));
+        let mut gone = vec![None; 60];
+        let why = |r: &[FrameLocalization], b: &RunBook, run| conflict_reason(r, b, &found, run);
+        withdraw(&mut results, &mut book, &runs, why, &mut gone);
+        // Frames 18..23 lost, then a run at the withdrawn place from frame 23: six intervals
+        // after the last withdrawn pose (frame 17), exactly the join gap at 30 Hz, though the
+        // frame times' difference rounds above it.
+        assert!(results[23].t - results[17].t > MAX_JOIN_GAP_S);
+        for r in &mut results[18..23] {
+            *r = FrameLocalization::lost(r.frame, r.t, 0, "lost".into());
+        }
+        for run in &mut book.frame_run[18..23] {
+            *run = None;
+        }
+        let again = book.open(23, WholeMap);
+        for i in 23..30 {
+            results[i] = posed(i, 0.01 * i as f64, LocalizationStatus::Tracked);
+            book.frame_run[i] = Some(again);
         }
         assert_eq!(
             runs_joining_withdrawn(&results, &book, &gone, 1.0),
