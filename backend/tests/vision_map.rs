@@ -6,7 +6,7 @@
 
 use kiwi_backend::vision::features::Descriptor;
 use kiwi_backend::vision::map::{
-    MAP_SCHEMA_VERSION, MapFeature, MapKeyframe, MapLandmark, MapPose, VisualMap,
+    FeaturePatch, MAP_SCHEMA_VERSION, MapFeature, MapKeyframe, MapLandmark, MapPose, VisualMap,
 };
 use kiwi_core::camera::{Camera, CameraModel, DoubleSphere, Kb4};
 use kiwi_core::geometry::{Pose, so3_exp};
@@ -46,12 +46,18 @@ fn sample_map() -> VisualMap {
                     bearing: Vector3::new(0.3, -0.2, -0.1).normalize().into(),
                     descriptor: Descriptor([1, 2, 3, 4]),
                     landmark: Some(k),
+                    octave: Some(2),
+                    patch: Some(FeaturePatch(std::array::from_fn(|i| {
+                        (i * 7 + k as usize) as u8
+                    }))),
                 },
                 MapFeature {
                     pixel: [10.0, 20.0],
                     bearing: [0.0, 0.0, 1.0],
                     descriptor: Descriptor([5, 6, 7, 8]),
                     landmark: None,
+                    octave: None,
+                    patch: None,
                 },
             ],
         });

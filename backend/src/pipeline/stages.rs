@@ -64,9 +64,9 @@ fn input(path: &Path, message: String) -> BackendError {
 pub fn version(kind: &StageKind) -> &'static str {
     match kind {
         StageKind::Sync { .. } => "sync-2",
-        StageKind::Map { .. } => "map-2",
+        StageKind::Map { .. } => "map-3",
         StageKind::Tool { .. } => "tool-1",
-        StageKind::Localize { .. } => "localize-8",
+        StageKind::Localize { .. } => "localize-9",
         StageKind::Metric { .. } => "metric-2",
         StageKind::Placement { .. } => "placement-1",
         StageKind::Observations { .. } => "observations-2",

@@ -356,6 +356,18 @@ pub fn build_map_with_orb(
         &stream.episode_name(),
         &stream.camera,
     )?;
+    // Each keyframe's image around its landmarks, for tracking to find them again by
+    // correlation where descriptors do not survive a change of view.
+    let keyframe_frames: Vec<u32> = map.keyframes.iter().map(|k| k.frame).collect();
+    map.sample_patches(&stream.camera, f64::from(orb_options.scale_factor), |k| {
+        match keyframe_frames.get(k) {
+            Some(&frame) => stream.load(frame as usize),
+            None => Err(BackendError::Vision {
+                context: "map patches".into(),
+                message: format!("keyframe {k} is not in the map"),
+            }),
+        }
+    })?;
     let summary = MapSummary {
         frames: n,
         frames_tracked: recon.frame_poses.len(),

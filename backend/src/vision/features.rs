@@ -647,6 +647,75 @@ fn patch_frame(
     Some((e1, e2, step))
 }
 
+/// The orthonormal tangent-plane directions `(e1, e2)` of a keypoint's rectified patch (patch
+/// coordinates `(u, v)` look along `bearing + step · (e1 u + e2 v)`, `e1` along the image's x);
+/// `None` where the lens cannot unproject the neighbouring pixels.
+pub fn patch_tangent_basis(
+    camera: &dyn CameraModel,
+    keypoint: &Keypoint,
+) -> Option<(Vector3<f64>, Vector3<f64>)> {
+    patch_frame(camera, keypoint, 1.0).map(|(e1, e2, _)| (e1, e2))
+}
+
+/// The angular step (rad of tangent plane per patch pixel) of a keypoint's rectified patch at
+/// its pyramid level (`scale_factor` per level).
+pub fn patch_step(camera: &dyn CameraModel, keypoint: &Keypoint, scale_factor: f64) -> Option<f64> {
+    patch_frame(camera, keypoint, scale_factor).map(|(_, _, step)| step)
+}
+
+/// A fixed orthonormal tangent basis `(f1, f2)` at a unit direction `b` (`f2 = b × f1`): the
+/// frame map patches are stored in, reproducible from the direction alone.
+pub fn direction_basis(b: &Vector3<f64>) -> (Vector3<f64>, Vector3<f64>) {
+    let helper = if b.x.abs() < 0.9 {
+        Vector3::x()
+    } else {
+        Vector3::y()
+    };
+    let f1 = b.cross(&helper).normalize();
+    (f1, b.cross(&f1))
+}
+
+/// A tangent-plane patch: its centre direction, tangent basis, angular step (rad per patch
+/// pixel) and affine shape; patch pixel `(u, v)` from the centre looks along
+/// `direction + step · (e1, e2) · shape · (u, v)`.
+#[derive(Debug, Clone, Copy)]
+pub struct TangentPatch {
+    /// Unit centre direction (camera frame).
+    pub direction: Vector3<f64>,
+    /// First tangent direction.
+    pub e1: Vector3<f64>,
+    /// Second tangent direction.
+    pub e2: Vector3<f64>,
+    /// Angular step (rad of tangent plane per patch pixel).
+    pub step: f64,
+    /// Affine shape applied to patch coordinates.
+    pub shape: Matrix2<f64>,
+}
+
+impl TangentPatch {
+    /// Resample the `side`-pixel patch (centre pixel `side / 2`) from `image`, row-major;
+    /// `None` where it leaves the lens's field of view.
+    pub fn sample(
+        &self,
+        image: &GrayImage,
+        camera: &dyn CameraModel,
+        side: usize,
+    ) -> Option<Vec<f32>> {
+        let frame = PatchFrame {
+            bearing: self.direction,
+            e1: self.e1,
+            e2: self.e2,
+            step: self.step,
+            shape: self.shape,
+        };
+        let mut nodes = Vec::with_capacity((side + 1) * (side + 1));
+        let mut out = vec![0f32; side * side];
+        frame
+            .sample(image, camera, side, side, &mut nodes, &mut out)
+            .then_some(out)
+    }
+}
+
 /// The tangent-plane frame of one keypoint's patch: patch coordinates `(u, v)` (px from the
 /// centre) look along `bearing + step · (e1, e2) · shape · (u, v)`.
 struct PatchFrame {

@@ -12,14 +12,16 @@
 
 use std::path::Path;
 
-use nalgebra::{Quaternion, Translation3, UnitQuaternion, Vector3};
+use nalgebra::{Matrix2, Point2, Point3, Quaternion, Translation3, UnitQuaternion, Vector3};
 use serde::{Deserialize, Deserializer, Serialize, Serializer};
 
 use kiwi_core::camera::{Camera, CameraModel, CameraModelKind, DoubleSphere, Kb4};
 use kiwi_core::geometry::Pose;
 
 use crate::error::{BackendError, Result};
-use crate::vision::features::Descriptor;
+use crate::vision::features::{
+    Descriptor, GrayImage, Keypoint, TangentPatch, direction_basis, patch_step,
+};
 use crate::vision::place::{KeyframeDatabase, Vocabulary};
 use crate::vision::quality::MapQuality;
 
@@ -33,6 +35,47 @@ pub const MAP_SCHEMA_VERSION: u32 = 3;
 pub const MAP_SCHEMA_OLDEST: u32 = 3;
 /// Largest deviation of a unit vector's norm from one in a valid file.
 const UNIT_TOLERANCE: f64 = 1e-6;
+/// Side (px) of a keyframe feature's stored patch: 11 × 11 samples at the feature's angular
+/// scale, enough texture for a correlation to stand out from its neighbourhood, small enough to
+/// stay on one surface.
+pub const PATCH_SIDE: usize = 11;
+
+/// The image around a keyframe feature's landmark as that keyframe saw it: [`PATCH_SIDE`]²
+/// luma samples, row-major, around the keyframe's ray to the landmark, in the tangent basis
+/// [`crate::vision::features::direction_basis`] of that ray, at the feature's angular scale
+/// (its pyramid level). Serialized as hexadecimal digits.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct FeaturePatch(pub [u8; PATCH_SIDE * PATCH_SIDE]);
+
+impl Serialize for FeaturePatch {
+    fn serialize<S: Serializer>(&self, s: S) -> std::result::Result<S::Ok, S::Error> {
+        let mut text = String::with_capacity(2 * self.0.len());
+        for b in self.0 {
+            text.push_str(&format!("{b:02x}"));
+        }
+        s.serialize_str(&text)
+    }
+}
+
+impl<'de> Deserialize<'de> for FeaturePatch {
+    fn deserialize<D: Deserializer<'de>>(d: D) -> std::result::Result<Self, D::Error> {
+        let text = String::deserialize(d)?;
+        let n = PATCH_SIDE * PATCH_SIDE;
+        if text.len() != 2 * n || !text.is_ascii() {
+            return Err(serde::de::Error::custom(format!(
+                "expected {} hexadecimal digits, found {} characters",
+                2 * n,
+                text.len()
+            )));
+        }
+        let mut bytes = [0u8; PATCH_SIDE * PATCH_SIDE];
+        for (k, b) in bytes.iter_mut().enumerate() {
+            *b = u8::from_str_radix(&text[2 * k..2 * k + 2], 16)
+                .map_err(|e| serde::de::Error::custom(format!("bad hexadecimal digits: {e}")))?;
+        }
+        Ok(Self(bytes))
+    }
+}
 
 impl Serialize for Descriptor {
     fn serialize<S: Serializer>(&self, s: S) -> std::result::Result<S::Ok, S::Error> {
@@ -158,6 +201,14 @@ pub struct MapFeature {
     pub descriptor: Descriptor,
     /// Index of the landmark it observes, if any.
     pub landmark: Option<u32>,
+    /// Pyramid level of the keypoint its descriptor was taken at (`None`: the descriptor was
+    /// taken in another frame of the feature's track).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub octave: Option<u8>,
+    /// The keyframe's image around the landmark (see [`FeaturePatch`]), for features with a
+    /// landmark and a known level.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub patch: Option<FeaturePatch>,
 }
 
 /// A keyframe.
@@ -229,6 +280,75 @@ fn unit(v: &[f64; 3]) -> bool {
 }
 
 impl VisualMap {
+    /// Store, for every keyframe feature with a landmark and a known pyramid level, the
+    /// keyframe's image around its ray to the landmark ([`FeaturePatch`]) at the feature's
+    /// angular scale (`scale_factor` per level); `image_of(k)` gives keyframe `k`'s image.
+    /// Features whose patch leaves the field of view keep none.
+    pub fn sample_patches(
+        &mut self,
+        camera: &dyn CameraModel,
+        scale_factor: f64,
+        mut image_of: impl FnMut(usize) -> Result<GrayImage>,
+    ) -> Result<()> {
+        let positions: Vec<Vector3<f64>> = self
+            .landmarks
+            .iter()
+            .map(|l| Vector3::from(l.position))
+            .collect();
+        for (k, kf) in self.keyframes.iter_mut().enumerate() {
+            let Some(pose) = kf.cam_from_map.to_pose() else {
+                continue;
+            };
+            if !kf
+                .features
+                .iter()
+                .any(|f| f.landmark.is_some() && f.octave.is_some())
+            {
+                continue;
+            }
+            let image = image_of(k)?;
+            for f in &mut kf.features {
+                let (Some(l), Some(octave)) = (f.landmark, f.octave) else {
+                    continue;
+                };
+                let Some(x) = positions.get(l as usize) else {
+                    continue;
+                };
+                let pc = (pose * Point3::from(*x)).coords;
+                let n = pc.norm();
+                if n.is_nan() || n <= 0.0 {
+                    continue;
+                }
+                let direction = pc / n;
+                let view = Keypoint {
+                    pixel: Point2::new(f.pixel[0], f.pixel[1]),
+                    bearing: Vector3::from(f.bearing),
+                    octave: i32::from(octave),
+                    response: 0.0,
+                };
+                let Some(step) = patch_step(camera, &view, scale_factor) else {
+                    continue;
+                };
+                let (e1, e2) = direction_basis(&direction);
+                let patch = TangentPatch {
+                    direction,
+                    e1,
+                    e2,
+                    step,
+                    shape: Matrix2::identity(),
+                };
+                if let Some(values) = patch.sample(&image, camera, PATCH_SIDE) {
+                    let mut bytes = [0u8; PATCH_SIDE * PATCH_SIDE];
+                    for (b, v) in bytes.iter_mut().zip(values) {
+                        *b = v.round().clamp(0.0, 255.0) as u8;
+                    }
+                    f.patch = Some(FeaturePatch(bytes));
+                }
+            }
+        }
+        Ok(())
+    }
+
     /// An empty map for a lens.
     pub fn new(camera_name: &str, lens: &str, episode: &str, camera: &dyn CameraModel) -> Self {
         Self {
@@ -640,6 +760,8 @@ impl VisualMap {
                     bearing: [kp.bearing.x, kp.bearing.y, kp.bearing.z],
                     descriptor: *d,
                     landmark: t.and_then(|t| index.get(&t).copied()),
+                    octave: u8::try_from(kp.octave).ok(),
+                    patch: None,
                 })
                 .collect();
             features.extend(more.iter().map(|(o, d)| MapFeature {
@@ -647,6 +769,8 @@ impl VisualMap {
                 bearing: [o.bearing.x, o.bearing.y, o.bearing.z],
                 descriptor: *d,
                 landmark: index.get(&o.track).copied(),
+                octave: None,
+                patch: None,
             }));
             map.keyframes.push(MapKeyframe {
                 frame: kf.frame,

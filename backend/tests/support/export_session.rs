@@ -382,6 +382,8 @@ pub fn add_scene_inputs(spec: &Synthetic, root: &Path, rate: f64) {
                 bearing: bearing.into_inner().into(),
                 descriptor: descriptor(u64::from(id)),
                 landmark: Some(id),
+                octave: None,
+                patch: None,
             });
         }
         // `cam_from_map` in map units: the scene pose moved into the map frame.
@@ -419,6 +421,8 @@ pub fn add_scene_inputs(spec: &Synthetic, root: &Path, rate: f64) {
                 bearing: [0.0, 0.0, 1.0],
                 descriptor: descriptor(1000 + u64::from(j)),
                 landmark: Some(j),
+                octave: None,
+                patch: None,
             });
         }
         map.keyframes.push(MapKeyframe {
