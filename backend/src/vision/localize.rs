@@ -7,7 +7,10 @@
 //!    When fewer than a share of the target correspondences survive, the frame's ORB features
 //!    are extracted and **guided matching** adds landmarks of the keyframes nearest to the
 //!    estimated pose: each is projected with the pose and matched to the keypoints within a
-//!    few pixels by Hamming distance (ratio-checked), then the pose is re-estimated.
+//!    few pixels by Hamming distance (ratio-checked); the landmarks left unmatched are looked
+//!    for by correlation (`patch_topup`): the map's stored patch of the keyframe view nearest
+//!    in direction, against the query image warped to that view through the landmark's surface
+//!    plane, within a few pixels of the projection. Then the pose is re-estimated.
 //! 2. **Relocalization** (tracking failed or the previous frame was lost): ORB features
 //!    (described on rectified patches, see `OrbOptions::rectified`) are quantized into the
 //!    map's bag of words; the best-scoring keyframes are candidates; the query is matched

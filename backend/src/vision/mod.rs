@@ -17,8 +17,8 @@
 //! - [`map`]: the versioned `.kmap` file and its export from a reconstruction.
 //! - [`place`]: place recognition over keyframes (bag of binary words learned from the map).
 //! - [`quality`]: the mapper's own check of a finished map (forward against reversed mapping).
-//! - [`localize`]: every frame against a frozen map (KLT tracking with guided top-up,
-//!   relocalization by place recognition, strict acceptance).
+//! - [`localize`]: every frame against a frozen map (KLT tracking with guided and correlation
+//!   top-ups, relocalization by place recognition, strict acceptance).
 //! - [`runs`]: the runs of a localized stream and whether they join (a look-alike place is
 //!   withdrawn).
 //! - [`episode`]: prepared-episode drivers behind `kiwi map` and `kiwi localize`.
