@@ -359,8 +359,8 @@ impl Default for LocalizerOptions {
             guided_max_distance: 50,
             patch_topup: true,
             // Right pairs correlate at a median of 0.92-0.97 and a pixel 15 px away at 0.16-0.58
-            // (kitchen 11 and photos 13 at 320 px, best over ±2 px): 0.8 keeps ~90 % of the
-            // right and a few per cent of the chance ones.
+            // (kitchen 11 and photos 13 at 320 px, best over ±2 px): at 0.8, 84-100 % of a
+            // frame's right pairs pass and 0-7 of its 25-40 chance ones.
             patch_min_ncc: 0.8,
             // A tenth of the correlation's range above any other offset: a distinct peak.
             patch_peak_margin: 0.1,
@@ -590,14 +590,28 @@ pub struct Localizer {
     whole_map_train: std::cell::OnceCell<(Vec<Descriptor>, Vec<u32>)>,
     /// What the last relocalized pose was found on.
     last_source: RelocalizationSource,
-    /// Per landmark, its keyframe views with a stored patch: keyframe, the view's keypoint
-    /// (pixel, bearing, level) and the patch.
-    landmark_patches: Vec<Vec<(u32, Keypoint, [f32; PATCH_SIDE * PATCH_SIDE])>>,
-    /// Per keyframe, its pose.
-    keyframe_poses: Vec<Pose>,
+    /// Per landmark, its keyframe views with a stored patch.
+    landmark_patches: Vec<Vec<PatchView>>,
+    /// Per keyframe, the map pose of its camera.
+    map_from_keyframes: Vec<Pose>,
     /// Per landmark, the normal of the plane through it and its neighbours, when they lie on
     /// one (the patch warp's surface).
     landmark_normals: Vec<Option<Vector3<f64>>>,
+}
+
+/// A keyframe's stored patch of one landmark, with what correlating it needs.
+#[derive(Debug, Clone)]
+struct PatchView {
+    /// Keyframe index.
+    keyframe: u32,
+    /// Angular step of the patch (rad per patch pixel: the view's level).
+    step: f64,
+    /// The patch ([`PATCH_SIDE`]² samples, row-major).
+    values: [f32; PATCH_SIDE * PATCH_SIDE],
+    /// Mean of the samples.
+    mean: f64,
+    /// Sum of squared deviations from the mean.
+    energy: f64,
 }
 
 /// Neighbours of a landmark that fix its surface normal lie within this many map depths: a few
@@ -775,8 +789,8 @@ impl Localizer {
                 }
             }
         }
-        let mut landmark_patches: Vec<Vec<(u32, Keypoint, [f32; PATCH_SIDE * PATCH_SIDE])>> =
-            vec![Vec::new(); map.landmarks.len()];
+        let mut landmark_patches: Vec<Vec<PatchView>> = vec![Vec::new(); map.landmarks.len()];
+        let scale_factor = f64::from(options.orb.scale_factor);
         if options.patch_topup {
             for (k, kf) in map.keyframes.iter().enumerate() {
                 for f in &kf.features {
@@ -791,15 +805,39 @@ impl Localizer {
                             octave: i32::from(octave),
                             response: 0.0,
                         };
-                        views.push((k as u32, view, patch.0.map(f32::from)));
+                        let Some(step) = patch_step(&camera, &view, scale_factor) else {
+                            continue;
+                        };
+                        let values = patch.0.map(f32::from);
+                        let n = values.len() as f64;
+                        let mean = values.iter().map(|&v| f64::from(v)).sum::<f64>() / n;
+                        let energy = values
+                            .iter()
+                            .map(|&v| {
+                                let r = f64::from(v) - mean;
+                                r * r
+                            })
+                            .sum::<f64>();
+                        views.push(PatchView {
+                            keyframe: k as u32,
+                            step,
+                            values,
+                            mean,
+                            energy,
+                        });
                     }
                 }
             }
         }
-        let keyframe_poses: Vec<Pose> = map
+        let map_from_keyframes: Vec<Pose> = map
             .keyframes
             .iter()
-            .map(|k| k.cam_from_map.to_pose().unwrap_or_else(Pose::identity))
+            .map(|k| {
+                k.cam_from_map
+                    .to_pose()
+                    .unwrap_or_else(Pose::identity)
+                    .inverse()
+            })
             .collect();
         let landmark_normals = if landmark_patches.iter().any(|v| !v.is_empty()) {
             let positions: Vec<Vector3<f64>> = map
@@ -853,7 +891,7 @@ impl Localizer {
             whole_map_train: std::cell::OnceCell::new(),
             last_source: RelocalizationSource::Window,
             landmark_patches,
-            keyframe_poses,
+            map_from_keyframes,
             landmark_normals,
         })
     }
@@ -1227,13 +1265,12 @@ impl Localizer {
     fn patch_warp(
         &self,
         l: u32,
-        keyframe: u32,
-        view: &Keypoint,
+        view: &PatchView,
         cam_from_map: &Pose,
         at: &Keypoint,
     ) -> Option<TangentPatch> {
         let x = self.positions[l as usize];
-        let map_from_kf = self.keyframe_poses.get(keyframe as usize)?.inverse();
+        let map_from_kf = self.map_from_keyframes.get(view.keyframe as usize)?;
         let c_k = map_from_kf.translation.vector;
         let normal = self.landmark_normals[l as usize].unwrap_or_else(|| (c_k - x).normalize());
         let (e1, e2) = patch_tangent_basis(&self.camera, at)?;
@@ -1273,15 +1310,13 @@ impl Localizer {
         if !(stretch.is_finite() && stretch <= WARP_MAX_STRETCH) {
             return None;
         }
-        let sf = f64::from(self.options.orb.scale_factor);
-        let step_k = patch_step(&self.camera, view, sf)?;
-        let step_q = patch_step(&self.camera, at, sf)?;
+        let step_q = patch_step(&self.camera, at, f64::from(self.options.orb.scale_factor))?;
         Some(TangentPatch {
             direction: b_q,
             e1,
             e2,
             step: step_q,
-            shape: j * (step_k / step_q),
+            shape: j * (view.step / step_q),
         })
     }
 
@@ -1324,35 +1359,31 @@ impl Localizer {
                 response: 0.0,
             };
             let ray = (x - centre).normalize();
-            let Some((_, keyframe, view, patch)) = self.landmark_patches[l as usize]
+            let Some(view) = self.landmark_patches[l as usize]
                 .iter()
-                .filter_map(|(k, v, p)| {
-                    let c_k = self
-                        .keyframe_poses
-                        .get(*k as usize)?
-                        .inverse()
-                        .translation
-                        .vector;
-                    Some(((x - c_k).normalize().dot(&ray), *k, *v, p))
+                .filter_map(|v| {
+                    let c_k = self.keyframe_centres.get(v.keyframe as usize)?;
+                    Some(((x - c_k).normalize().dot(&ray), v))
                 })
-                .max_by(|a, b| a.0.total_cmp(&b.0).then(b.1.cmp(&a.1)))
+                .max_by(|a, b| a.0.total_cmp(&b.0).then(b.1.keyframe.cmp(&a.1.keyframe)))
+                .map(|(_, v)| v)
             else {
                 continue;
             };
-            let Some(warped) = self.patch_warp(l, keyframe, &view, cam_from_map, &at) else {
+            // A flat patch correlates with nothing.
+            if view.energy <= 1e-3 * (side * side) as f64 {
+                continue;
+            }
+            let Some(warped) = self.patch_warp(l, view, cam_from_map, &at) else {
                 continue;
             };
             let Some(area) = warped.sample(image, &self.camera, region) else {
                 continue;
             };
-            let mean = patch.iter().map(|&v| f64::from(v)).sum::<f64>() / (side * side) as f64;
-            for (r, &v) in reference.iter_mut().zip(patch.iter()) {
-                *r = f64::from(v) - mean;
+            for (r, &v) in reference.iter_mut().zip(view.values.iter()) {
+                *r = f64::from(v) - view.mean;
             }
-            let energy = reference.iter().map(|v| v * v).sum::<f64>();
-            if energy <= 1e-3 * (side * side) as f64 {
-                continue;
-            }
+            let energy = view.energy;
             for oy in 0..w {
                 for ox in 0..w {
                     scores[oy * w + ox] =

@@ -47,59 +47,61 @@ pub const PATCH_SIDE: usize = 11;
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct FeaturePatch(pub [u8; PATCH_SIDE * PATCH_SIDE]);
 
+/// Lower-case hexadecimal digits of `bytes`, in order.
+fn to_hex(bytes: &[u8]) -> String {
+    let mut text = String::with_capacity(2 * bytes.len());
+    for b in bytes {
+        text.push_str(&format!("{b:02x}"));
+    }
+    text
+}
+
+/// The `N` bytes that `2 N` hexadecimal digits spell, or what is wrong with them.
+fn from_hex<const N: usize>(text: &str) -> std::result::Result<[u8; N], String> {
+    if text.len() != 2 * N || !text.is_ascii() {
+        return Err(format!(
+            "expected {} hexadecimal digits, found {} characters",
+            2 * N,
+            text.len()
+        ));
+    }
+    let mut bytes = [0u8; N];
+    for (k, b) in bytes.iter_mut().enumerate() {
+        *b = u8::from_str_radix(&text[2 * k..2 * k + 2], 16)
+            .map_err(|e| format!("bad hexadecimal digits: {e}"))?;
+    }
+    Ok(bytes)
+}
+
 impl Serialize for FeaturePatch {
     fn serialize<S: Serializer>(&self, s: S) -> std::result::Result<S::Ok, S::Error> {
-        let mut text = String::with_capacity(2 * self.0.len());
-        for b in self.0 {
-            text.push_str(&format!("{b:02x}"));
-        }
-        s.serialize_str(&text)
+        s.serialize_str(&to_hex(&self.0))
     }
 }
 
 impl<'de> Deserialize<'de> for FeaturePatch {
     fn deserialize<D: Deserializer<'de>>(d: D) -> std::result::Result<Self, D::Error> {
         let text = String::deserialize(d)?;
-        let n = PATCH_SIDE * PATCH_SIDE;
-        if text.len() != 2 * n || !text.is_ascii() {
-            return Err(serde::de::Error::custom(format!(
-                "expected {} hexadecimal digits, found {} characters",
-                2 * n,
-                text.len()
-            )));
-        }
-        let mut bytes = [0u8; PATCH_SIDE * PATCH_SIDE];
-        for (k, b) in bytes.iter_mut().enumerate() {
-            *b = u8::from_str_radix(&text[2 * k..2 * k + 2], 16)
-                .map_err(|e| serde::de::Error::custom(format!("bad hexadecimal digits: {e}")))?;
-        }
-        Ok(Self(bytes))
+        from_hex(&text).map(Self).map_err(serde::de::Error::custom)
     }
 }
 
 impl Serialize for Descriptor {
     fn serialize<S: Serializer>(&self, s: S) -> std::result::Result<S::Ok, S::Error> {
-        let mut text = String::with_capacity(64);
-        for w in self.0 {
-            text.push_str(&format!("{w:016x}"));
-        }
-        s.serialize_str(&text)
+        let bytes: Vec<u8> = self.0.iter().flat_map(|w| w.to_be_bytes()).collect();
+        s.serialize_str(&to_hex(&bytes))
     }
 }
 
 impl<'de> Deserialize<'de> for Descriptor {
     fn deserialize<D: Deserializer<'de>>(d: D) -> std::result::Result<Self, D::Error> {
         let text = String::deserialize(d)?;
-        if text.len() != 64 || !text.is_ascii() {
-            return Err(serde::de::Error::custom(format!(
-                "expected 64 hexadecimal digits, found {} characters",
-                text.len()
-            )));
-        }
+        let bytes: [u8; 32] = from_hex(&text).map_err(serde::de::Error::custom)?;
         let mut words = [0u64; 4];
-        for (k, w) in words.iter_mut().enumerate() {
-            *w = u64::from_str_radix(&text[16 * k..16 * k + 16], 16)
-                .map_err(|e| serde::de::Error::custom(format!("bad hexadecimal digits: {e}")))?;
+        for (w, chunk) in words.iter_mut().zip(bytes.chunks_exact(8)) {
+            let mut word = [0u8; 8];
+            word.copy_from_slice(chunk);
+            *w = u64::from_be_bytes(word);
         }
         Ok(Self(words))
     }
