@@ -66,7 +66,7 @@ pub fn version(kind: &StageKind) -> &'static str {
         StageKind::Sync { .. } => "sync-2",
         StageKind::Map { .. } => "map-3",
         StageKind::Tool { .. } => "tool-1",
-        StageKind::Localize { .. } => "localize-9",
+        StageKind::Localize { .. } => "localize-10",
         StageKind::Metric { .. } => "metric-2",
         StageKind::Placement { .. } => "placement-1",
         StageKind::Observations { .. } => "observations-2",
