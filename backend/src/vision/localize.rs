@@ -1579,12 +1579,12 @@ impl Localizer {
         }
     }
 
-    /// A relocalized pose with the landmarks correlation finds around it (`refine_relocalized`): the
-    /// landmarks of the keyframes viewing it best that its inliers leave out are looked for by
-    /// their stored patches, those that fit the pose as an inlier would are added, and the pose
-    /// is fitted again on all. The refit replaces the pose only when it keeps more inliers and
-    /// passes the acceptance rules; the frames tracked from it then start from the whole view
-    /// instead of the descriptor matches alone.
+    /// A relocalized pose with the landmarks correlation finds around it
+    /// (`refine_relocalized`): the landmarks of the keyframes viewing it best that its inliers
+    /// leave out are looked for by their stored patches, those that fit the pose as an inlier
+    /// would are added, and the pose is fitted again on all. The refit replaces the pose only
+    /// when it keeps more inliers and passes the acceptance rules; the frames tracked from it
+    /// then start from the whole view instead of the descriptor matches alone.
     fn refine_by_correlation(&self, frame: u32, image: &GrayImage, e: Estimate) -> Estimate {
         if !self.options.refine_relocalized {
             return e;
