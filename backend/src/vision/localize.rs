@@ -750,23 +750,28 @@ impl Localizer {
             .vocabulary
             .clone()
             .ok_or_else(|| vision_err("the map has no place-recognition vocabulary".into()))?;
-        let keyframe_centres = map
+        // A keyframe pose the file cannot give stands at the origin looking along z.
+        let map_from_keyframes: Vec<Pose> = map
             .keyframes
             .iter()
             .map(|k| {
                 k.cam_from_map
                     .to_pose()
-                    .map_or_else(Vector3::zeros, |p| p.inverse().translation.vector)
+                    .map_or_else(Pose::identity, |p| p.inverse())
             })
             .collect();
-        let keyframe_axes = map
-            .keyframes
+        let keyframe_centres = map_from_keyframes
             .iter()
-            .map(|k| {
-                k.cam_from_map
-                    .to_pose()
-                    .map_or_else(Vector3::z, |p| p.inverse().rotation * Vector3::z())
-            })
+            .map(|p| p.translation.vector)
+            .collect();
+        let keyframe_axes = map_from_keyframes
+            .iter()
+            .map(|p| p.rotation * Vector3::z())
+            .collect();
+        let positions: Vec<Vector3<f64>> = map
+            .landmarks
+            .iter()
+            .map(|l| Vector3::from(l.position))
             .collect();
         let keyframe_views: Vec<Vec<(Descriptor, u32)>> = map
             .keyframes
@@ -809,13 +814,8 @@ impl Localizer {
                         continue;
                     };
                     if let Some(views) = landmark_patches.get_mut(l as usize) {
-                        let view = Keypoint {
-                            pixel: Point2::new(f.pixel[0], f.pixel[1]),
-                            bearing: Vector3::from(f.bearing),
-                            octave: i32::from(octave),
-                            response: 0.0,
-                        };
-                        let Some(step) = patch_step(&camera, &view, scale_factor) else {
+                        let Some(step) = patch_step(&camera, &f.keypoint(octave), scale_factor)
+                        else {
                             continue;
                         };
                         let values = patch.0.map(f32::from);
@@ -839,22 +839,7 @@ impl Localizer {
                 }
             }
         }
-        let map_from_keyframes: Vec<Pose> = map
-            .keyframes
-            .iter()
-            .map(|k| {
-                k.cam_from_map
-                    .to_pose()
-                    .unwrap_or_else(Pose::identity)
-                    .inverse()
-            })
-            .collect();
         let landmark_normals = if landmark_patches.iter().any(|v| !v.is_empty()) {
-            let positions: Vec<Vector3<f64>> = map
-                .landmarks
-                .iter()
-                .map(|l| Vector3::from(l.position))
-                .collect();
             surface_normals(&positions, NORMAL_RADIUS_DEPTHS * map_depth)
         } else {
             vec![None; map.landmarks.len()]
@@ -869,11 +854,7 @@ impl Localizer {
             map_depth,
             database,
             vocabulary,
-            positions: map
-                .landmarks
-                .iter()
-                .map(|l| Vector3::from(l.position))
-                .collect(),
+            positions,
             descriptors: map.landmarks.iter().map(|l| l.descriptor).collect(),
             keyframe_views,
             landmark_views,
@@ -1579,6 +1560,13 @@ impl Localizer {
         }
     }
 
+    /// Whether a correspondence's bearing lies within `limit` (rad) of its landmark seen from
+    /// `cam_from_map`.
+    fn fits(&self, cam_from_map: &Pose, c: &Correspondence, limit: f64) -> bool {
+        let pc = cam_from_map * Point3::from(self.positions[c.landmark as usize]);
+        angular_error(&c.bearing, &pc.coords) <= limit
+    }
+
     /// A relocalized pose with the landmarks correlation finds around it
     /// (`refine_relocalized`): the landmarks of the keyframes viewing it best that its inliers
     /// leave out are looked for by their stored patches, those that fit the pose as an inlier
@@ -1600,10 +1588,11 @@ impl Localizer {
             .collect();
         let found = self.patch_matches(image, &e.cam_from_map, &rest);
         let mut all = e.inliers.clone();
-        all.extend(found.into_iter().filter(|c| {
-            let pc = e.cam_from_map * Point3::from(self.positions[c.landmark as usize]);
-            angular_error(&c.bearing, &pc.coords) <= self.threshold_rad
-        }));
+        all.extend(
+            found
+                .into_iter()
+                .filter(|c| self.fits(&e.cam_from_map, c, self.threshold_rad)),
+        );
         let added = all.len() - e.inliers.len();
         let min = self.options.min_inliers_relocalization;
         let refit = self
@@ -1656,10 +1645,7 @@ impl Localizer {
         let points: Vec<(u32, Point2<f64>)> = e
             .inliers
             .iter()
-            .filter(|c| {
-                let pc = e.cam_from_map * Point3::from(self.positions[c.landmark as usize]);
-                angular_error(&c.bearing, &pc.coords) <= carry_rad
-            })
+            .filter(|c| self.fits(&e.cam_from_map, c, carry_rad))
             .take(self.options.target_tracks)
             .map(|c| (c.landmark, c.pixel))
             .collect();
@@ -1764,10 +1750,7 @@ impl Localizer {
             // in a finely repeated texture every match can lock one period off together and
             // outvote the tracks (kitchen 7 at 480 px: 72 such matches moved a pose by 5 cm).
             if let Ok(e) = &first {
-                found.retain(|c| {
-                    let pc = e.cam_from_map * Point3::from(self.positions[c.landmark as usize]);
-                    angular_error(&c.bearing, &pc.coords) <= self.threshold_rad
-                });
+                found.retain(|c| self.fits(&e.cam_from_map, c, self.threshold_rad));
             }
             tracing::debug!(
                 frame,

@@ -49,9 +49,11 @@ pub struct FeaturePatch(pub [u8; PATCH_SIDE * PATCH_SIDE]);
 
 /// Lower-case hexadecimal digits of `bytes`, in order.
 fn to_hex(bytes: &[u8]) -> String {
+    const DIGITS: &[u8; 16] = b"0123456789abcdef";
     let mut text = String::with_capacity(2 * bytes.len());
-    for b in bytes {
-        text.push_str(&format!("{b:02x}"));
+    for &b in bytes {
+        text.push(char::from(DIGITS[usize::from(b >> 4)]));
+        text.push(char::from(DIGITS[usize::from(b & 0x0f)]));
     }
     text
 }
@@ -213,6 +215,18 @@ pub struct MapFeature {
     pub patch: Option<FeaturePatch>,
 }
 
+impl MapFeature {
+    /// The feature as a keypoint at pyramid level `octave` (no detector response).
+    pub fn keypoint(&self, octave: u8) -> Keypoint {
+        Keypoint {
+            pixel: Point2::new(self.pixel[0], self.pixel[1]),
+            bearing: Vector3::from(self.bearing),
+            octave: i32::from(octave),
+            response: 0.0,
+        }
+    }
+}
+
 /// A keyframe.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct MapKeyframe {
@@ -322,13 +336,7 @@ impl VisualMap {
                     continue;
                 }
                 let direction = pc / n;
-                let view = Keypoint {
-                    pixel: Point2::new(f.pixel[0], f.pixel[1]),
-                    bearing: Vector3::from(f.bearing),
-                    octave: i32::from(octave),
-                    response: 0.0,
-                };
-                let Some(step) = patch_step(camera, &view, scale_factor) else {
+                let Some(step) = patch_step(camera, &f.keypoint(octave), scale_factor) else {
                     continue;
                 };
                 let (e1, e2) = direction_basis(&direction);
