@@ -64,7 +64,7 @@ fn input(path: &Path, message: String) -> BackendError {
 pub fn version(kind: &StageKind) -> &'static str {
     match kind {
         StageKind::Sync { .. } => "sync-2",
-        StageKind::Map { .. } => "map-3",
+        StageKind::Map { .. } => "map-4",
         StageKind::Tool { .. } => "tool-1",
         StageKind::Localize { .. } => "localize-10",
         StageKind::Metric { .. } => "metric-2",
