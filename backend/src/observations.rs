@@ -14,6 +14,18 @@
 //! Failed localizations stay missing: nothing is filled in here. Rear observations are later
 //! interpolated to front-frame times by the fusion only inside tracked runs (neighbours at most
 //! [`crate::fusion::DEFAULT_MAX_INTERPOLATION_GAP_S`] apart).
+//!
+//! **The two lenses check each other.** Both lenses of a wrist camera see the same body pose at
+//! the same moment, each through its own map. A lens's poses come in runs (consecutive
+//! localized frames; a lost frame ends one), each begun by a relocalization and carried on by
+//! tracking. In a room whose texture repeats, a relocalization can fit the view to a look-alike
+//! place a pattern period away, and tracking carries that wrong pose on with every frame
+//! passing the localizer's rules; the other lens, localized in another map on other walls, is
+//! the independent evidence. Where a front run and a rear run overlap and disagree by more than
+//! [`RUN_DISAGREEMENT_M`] (median over their common moments), the run that no other run of
+//! the other lens vouches for is withdrawn: a run confirmed by an independent relocalization of
+//! the other lens stands. When neither or both are vouched for, both are withdrawn (a frame
+//! without a pose is better than a wrong one). Withdrawn runs are listed in the summary.
 
 use serde::{Deserialize, Serialize};
 
@@ -37,8 +49,39 @@ pub struct SceneReference {
     pub scene_from_front_map: Pose,
 }
 
+/// Largest time (s) between a front and a rear observation compared as one moment: the
+/// dual-lens camera exposes both lenses together, so the two differ only by the lenses' time
+/// shifts (well under a millisecond); half a frame interval at 120 Hz.
+pub const PAIR_TOLERANCE_S: f64 = 0.004;
+
+/// Median position disagreement (m) of two overlapping runs of the two lenses above which they
+/// are taken to be at different places: runs at the right place agree within 1-3 cm (the
+/// localizers' and the placement's errors), a run relocalized at a look-alike place is a
+/// pattern period away (tiles, wallpaper, cupboard doors: 0.3-0.9 m).
+pub const RUN_DISAGREEMENT_M: f64 = 0.1;
+
+/// Fewest common moments for two runs to be compared: a few frames do not judge a run.
+pub const MIN_RUN_PAIRS: usize = 5;
+
+/// A run of one lens withdrawn because the other lens disagrees with it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct WithdrawnRun {
+    /// `front` or `rear`.
+    pub lens: String,
+    /// First observation of the run (IMU clock, s).
+    pub start_s: f64,
+    /// Last observation of the run (IMU clock, s).
+    pub end_s: f64,
+    /// Observations withdrawn.
+    pub observations: usize,
+    /// Median position disagreement with the other lens's run it contradicts (m).
+    pub disagreement_m: f64,
+    /// Why it was withdrawn.
+    pub reason: String,
+}
+
 /// How many localizations became observations, per lens.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct ObservationCounts {
     /// Front frames in the episode.
     pub front_frames: usize,
@@ -48,12 +91,16 @@ pub struct ObservationCounts {
     pub rear_frames: usize,
     /// Rear observations made.
     pub rear_observations: usize,
+    /// Runs withdrawn because the other lens contradicts them (their observations are not
+    /// counted above).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub withdrawn_runs: Vec<WithdrawnRun>,
 }
 
 /// Eq. 3 for one wrist: front and rear localizations (`map_from_cam` on the camera clock) to
-/// `scene_from_imu` observations on the IMU clock, sorted by time. `exposure_centre_s` is the
-/// time from a frame's timestamp to its exposure centre (half the rolling readout; 0 for a
-/// global shutter).
+/// `scene_from_imu` observations on the IMU clock, sorted by time, after the two lenses have
+/// checked each other's runs (module docs). `exposure_centre_s` is the time from a frame's
+/// timestamp to its exposure centre (half the rolling readout; 0 for a global shutter).
 pub fn body_observations(
     front: &[Localization],
     rear: &[Localization],
@@ -62,32 +109,318 @@ pub fn body_observations(
     rear_calibration: &LensImuCalibration,
     exposure_centre_s: f64,
 ) -> (Vec<PoseObservation>, ObservationCounts) {
-    let mut out = Vec::with_capacity(front.len() + rear.len());
-    for f in front.iter().filter(|f| f.valid) {
-        let front_map_from_cam = apply(&reference.front_metric, &f.map_from_cam);
-        out.push(PoseObservation {
-            t: f.t + front_calibration.time_shift_s + exposure_centre_s,
-            source: Source::Front,
-            scene_from_imu: reference.scene_from_front_map
-                * front_map_from_cam
-                * front_calibration.cam_from_imu,
-        });
-    }
+    let front_obs = lens_observations(front, Source::Front, |f| PoseObservation {
+        t: f.t + front_calibration.time_shift_s + exposure_centre_s,
+        source: Source::Front,
+        scene_from_imu: reference.scene_from_front_map
+            * apply(&reference.front_metric, &f.map_from_cam)
+            * front_calibration.cam_from_imu,
+    });
+    let rear_obs = lens_observations(rear, Source::Rear, |r| PoseObservation {
+        t: r.t + rear_calibration.time_shift_s + exposure_centre_s,
+        source: Source::Rear,
+        scene_from_imu: apply(&reference.rear_metric, &r.map_from_cam)
+            * rear_calibration.cam_from_imu,
+    });
+    let withdrawn = cross_check(&front_obs, &rear_obs);
+    let kept = |obs: &[RunObservation], source: Source| -> Vec<PoseObservation> {
+        obs.iter()
+            .filter(|o| !withdrawn.contains_key(&(source, o.run)))
+            .map(|o| o.observation)
+            .collect()
+    };
+    let mut out = kept(&front_obs, Source::Front);
     let front_observations = out.len();
-    for r in rear.iter().filter(|r| r.valid) {
-        let scene_from_cam = apply(&reference.rear_metric, &r.map_from_cam);
-        out.push(PoseObservation {
-            t: r.t + rear_calibration.time_shift_s + exposure_centre_s,
-            source: Source::Rear,
-            scene_from_imu: scene_from_cam * rear_calibration.cam_from_imu,
-        });
-    }
+    out.extend(kept(&rear_obs, Source::Rear));
     let counts = ObservationCounts {
         front_frames: front.len(),
         front_observations,
         rear_frames: rear.len(),
         rear_observations: out.len() - front_observations,
+        withdrawn_runs: withdrawn.values().cloned().collect(),
     };
     out.sort_by(|a, b| a.t.total_cmp(&b.t));
     (out, counts)
+}
+
+/// An observation and the run of its lens it belongs to.
+#[derive(Debug, Clone, Copy)]
+struct RunObservation {
+    run: usize,
+    observation: PoseObservation,
+}
+
+/// The observations of one lens's valid localizations, numbered by run (a lost frame ends a
+/// run), in time order.
+fn lens_observations(
+    rows: &[Localization],
+    source: Source,
+    observe: impl Fn(&Localization) -> PoseObservation,
+) -> Vec<RunObservation> {
+    let mut out: Vec<RunObservation> = Vec::with_capacity(rows.len());
+    let mut run = 0usize;
+    let mut in_run = false;
+    for row in rows {
+        if !row.valid {
+            in_run = false;
+            continue;
+        }
+        if !in_run && !out.is_empty() {
+            run += 1;
+        }
+        in_run = true;
+        let observation = observe(row);
+        debug_assert_eq!(observation.source, source);
+        out.push(RunObservation { run, observation });
+    }
+    out.sort_by(|a, b| a.observation.t.total_cmp(&b.observation.t));
+    out
+}
+
+/// The runs to withdraw, keyed by (lens, run), with why (module docs).
+fn cross_check(
+    front: &[RunObservation],
+    rear: &[RunObservation],
+) -> std::collections::BTreeMap<(Source, usize), WithdrawnRun> {
+    use std::collections::{BTreeMap, BTreeSet};
+    // Position disagreements of every front–rear pair of one moment, per pair of runs.
+    let mut distances: BTreeMap<(usize, usize), Vec<f64>> = BTreeMap::new();
+    let mut j = 0usize;
+    for f in front {
+        let t = f.observation.t;
+        while j < rear.len() && rear[j].observation.t < t - PAIR_TOLERANCE_S {
+            j += 1;
+        }
+        let nearest = rear[j..]
+            .iter()
+            .take_while(|r| r.observation.t <= t + PAIR_TOLERANCE_S)
+            .min_by(|a, b| {
+                (a.observation.t - t)
+                    .abs()
+                    .total_cmp(&(b.observation.t - t).abs())
+            });
+        if let Some(r) = nearest {
+            let d = (f.observation.scene_from_imu.translation.vector
+                - r.observation.scene_from_imu.translation.vector)
+                .norm();
+            if d.is_finite() {
+                distances.entry((f.run, r.run)).or_default().push(d);
+            }
+        }
+    }
+    let medians: BTreeMap<(usize, usize), f64> = distances
+        .into_iter()
+        .filter(|(_, d)| d.len() >= MIN_RUN_PAIRS)
+        .map(|(k, mut d)| {
+            d.sort_by(f64::total_cmp);
+            (k, d[d.len() / 2])
+        })
+        .collect();
+    let agree: BTreeSet<(usize, usize)> = medians
+        .iter()
+        .filter(|(_, m)| **m <= RUN_DISAGREEMENT_M)
+        .map(|(k, _)| *k)
+        .collect();
+    let span = |obs: &[RunObservation], run: usize| -> (f64, f64, usize) {
+        let times: Vec<f64> = obs
+            .iter()
+            .filter(|o| o.run == run)
+            .map(|o| o.observation.t)
+            .collect();
+        (
+            times.first().copied().unwrap_or(f64::NAN),
+            times.last().copied().unwrap_or(f64::NAN),
+            times.len(),
+        )
+    };
+    let mut out = BTreeMap::new();
+    for (&(f, r), &median) in &medians {
+        if median <= RUN_DISAGREEMENT_M {
+            continue;
+        }
+        let front_vouched = agree.iter().any(|&(af, ar)| af == f && ar != r);
+        let rear_vouched = agree.iter().any(|&(af, ar)| ar == r && af != f);
+        let mut withdraw = |source: Source, run: usize, obs: &[RunObservation], why: String| {
+            let (start_s, end_s, n) = span(obs, run);
+            out.entry((source, run)).or_insert(WithdrawnRun {
+                lens: source.name().to_string(),
+                start_s,
+                end_s,
+                observations: n,
+                disagreement_m: median,
+                reason: why,
+            });
+        };
+        let other = |source: Source| match source {
+            Source::Front => "rear",
+            Source::Rear => "front",
+        };
+        let vouched_against = |source: Source| {
+            format!(
+                "the {} lens disagrees with it by {median:.3} m (median) where a run of the {} \
+                 lens that another run of the {} lens confirms places the wrist: it was \
+                 localized at a look-alike place",
+                other(source),
+                other(source),
+                source.name()
+            )
+        };
+        let undecided = format!(
+            "the front and rear lenses disagree by {median:.3} m (median) and no other run tells \
+             which is right: one of them was localized at a look-alike place"
+        );
+        match (front_vouched, rear_vouched) {
+            (false, true) => withdraw(Source::Front, f, front, vouched_against(Source::Front)),
+            (true, false) => withdraw(Source::Rear, r, rear, vouched_against(Source::Rear)),
+            _ => {
+                withdraw(Source::Front, f, front, undecided.clone());
+                withdraw(Source::Rear, r, rear, undecided);
+            }
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::Vector3;
+
+    const RATE_HZ: f64 = 30.0;
+
+    fn identity_reference() -> SceneReference {
+        SceneReference {
+            front_metric: Sim3::identity(),
+            rear_metric: Sim3::identity(),
+            scene_from_front_map: Pose::identity(),
+        }
+    }
+
+    fn calibration() -> LensImuCalibration {
+        LensImuCalibration {
+            cam_from_imu: Pose::identity(),
+            time_shift_s: 0.0,
+            imu_noise: None,
+        }
+    }
+
+    /// A wrist moving along x at 0.5 m/s, seen for `n` frames; `offset(i)` moves frame `i`'s
+    /// pose (a look-alike place) and `None` loses the frame.
+    fn stream(n: usize, offset: impl Fn(usize) -> Option<Vector3<f64>>) -> Vec<Localization> {
+        (0..n)
+            .map(|i| {
+                let t = i as f64 / RATE_HZ;
+                match offset(i) {
+                    Some(o) => Localization {
+                        t,
+                        valid: true,
+                        map_from_cam: Pose::from_parts(
+                            (Vector3::new(0.5 * t, 0.0, 1.0) + o).into(),
+                            nalgebra::UnitQuaternion::identity(),
+                        ),
+                    },
+                    None => Localization {
+                        t,
+                        valid: false,
+                        map_from_cam: Pose::identity(),
+                    },
+                }
+            })
+            .collect()
+    }
+
+    fn observe(front: &[Localization], rear: &[Localization]) -> ObservationCounts {
+        let c = calibration();
+        body_observations(front, rear, &identity_reference(), &c, &c, 0.0).1
+    }
+
+    /// Two lenses that agree (within a centimetre of noise) keep every observation.
+    #[test]
+    fn lenses_that_agree_keep_every_run() {
+        let front = stream(90, |i| {
+            Some(Vector3::new(0.0, 0.01 * ((i % 3) as f64 - 1.0), 0.0))
+        });
+        let rear = stream(90, |i| (i % 20 != 7).then(Vector3::zeros));
+        let counts = observe(&front, &rear);
+        assert!(
+            counts.withdrawn_runs.is_empty(),
+            "{:?}",
+            counts.withdrawn_runs
+        );
+        assert_eq!(counts.front_observations, 90);
+        assert_eq!(counts.rear_observations, 90 - 5);
+    }
+
+    /// The rear lens loses the view at frame 40 and relocalizes at frame 43 at a look-alike
+    /// place 0.4 m away; the front lens tracks throughout and agreed with the rear's first run:
+    /// the rear's second run is withdrawn, the rest kept.
+    #[test]
+    fn a_run_at_a_look_alike_place_is_withdrawn_where_the_other_lens_is_confirmed() {
+        let front = stream(90, |_| Some(Vector3::zeros()));
+        let rear = stream(90, |i| match i {
+            0..40 => Some(Vector3::zeros()),
+            40..43 => None,
+            _ => Some(Vector3::new(0.4, 0.0, 0.0)),
+        });
+        let counts = observe(&front, &rear);
+        assert_eq!(
+            counts.withdrawn_runs.len(),
+            1,
+            "{:?}",
+            counts.withdrawn_runs
+        );
+        let w = &counts.withdrawn_runs[0];
+        assert_eq!(w.lens, "rear");
+        assert_eq!(w.observations, 47);
+        assert!((w.start_s - 43.0 / RATE_HZ).abs() < 1e-9, "{}", w.start_s);
+        assert!(
+            (w.disagreement_m - 0.4).abs() < 1e-9,
+            "{}",
+            w.disagreement_m
+        );
+        assert!(w.reason.contains("look-alike"), "{}", w.reason);
+        assert_eq!(counts.front_observations, 90);
+        assert_eq!(counts.rear_observations, 40);
+    }
+
+    /// The same with the lenses swapped: the front run at the look-alike place is withdrawn.
+    #[test]
+    fn a_front_run_at_a_look_alike_place_is_withdrawn_too() {
+        let rear = stream(90, |_| Some(Vector3::zeros()));
+        let front = stream(90, |i| match i {
+            0..30 | 70..90 => Some(Vector3::zeros()),
+            30..32 | 68..70 => None,
+            _ => Some(Vector3::new(0.0, -0.6, 0.0)),
+        });
+        let counts = observe(&front, &rear);
+        assert_eq!(
+            counts.withdrawn_runs.len(),
+            1,
+            "{:?}",
+            counts.withdrawn_runs
+        );
+        assert_eq!(counts.withdrawn_runs[0].lens, "front");
+        assert_eq!(counts.front_observations, 50);
+        assert_eq!(counts.rear_observations, 90);
+    }
+
+    /// Two lenses that disagree over the whole episode, with nothing to tell which is right:
+    /// both runs are withdrawn.
+    #[test]
+    fn lenses_that_disagree_throughout_withdraw_both() {
+        let front = stream(60, |_| Some(Vector3::zeros()));
+        let rear = stream(60, |_| Some(Vector3::new(0.0, 0.0, 0.5)));
+        let counts = observe(&front, &rear);
+        assert_eq!(counts.withdrawn_runs.len(), 2);
+        assert_eq!(counts.front_observations + counts.rear_observations, 0);
+    }
+
+    /// A disagreement below the bound (a few centimetres: map and placement errors) withdraws
+    /// nothing.
+    #[test]
+    fn a_few_centimetres_do_not_withdraw_a_run() {
+        let front = stream(60, |_| Some(Vector3::zeros()));
+        let rear = stream(60, |_| Some(Vector3::new(0.03, 0.02, 0.0)));
+        assert!(observe(&front, &rear).withdrawn_runs.is_empty());
+    }
 }

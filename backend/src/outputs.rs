@@ -422,7 +422,7 @@ fn write_wrist(
         median_tip_sigma_p_m: median(sigmas),
         front_localization: w.front.clone(),
         rear_localization: w.rear.clone(),
-        observations: w.observations,
+        observations: w.observations.clone(),
         fusion: w.fusion,
         frames_outside_imu: w.frames_outside_imu,
         placement: w.placement.clone(),

@@ -28,7 +28,7 @@ use self::preint::{ImuBias, ImuParams, Preintegrated};
 use crate::error::{BackendError, Result};
 
 /// Which camera an observation comes from.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
 pub enum Source {
     /// The front lens (native node clock).
     Front,

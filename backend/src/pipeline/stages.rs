@@ -69,7 +69,7 @@ pub fn version(kind: &StageKind) -> &'static str {
         StageKind::Localize { .. } => "localize-10",
         StageKind::Metric { .. } => "metric-2",
         StageKind::Placement { .. } => "placement-1",
-        StageKind::Observations { .. } => "observations-2",
+        StageKind::Observations { .. } => "observations-3",
         StageKind::Fusion { .. } => "fusion-4",
         StageKind::Gripper { .. } => "gripper-1",
         StageKind::Head { .. } => "head-2",
@@ -906,6 +906,24 @@ fn run_observations(env: &StageEnv<'_>, episode: &str, side: Side) -> Result<()>
     let reference = scene_reference(env.ctx, side)?;
     let centre = exposure_centre_delay(env.ctx, episode, w)?;
     let (obs, counts) = body_observations(&front, &rear, &reference, &w.front, &w.rear, centre);
+    if obs.is_empty() && !counts.withdrawn_runs.is_empty() {
+        let why: Vec<String> = counts
+            .withdrawn_runs
+            .iter()
+            .map(|r| {
+                format!(
+                    "{} run {:.2}-{:.2} s ({} frames): {}",
+                    r.lens, r.start_s, r.end_s, r.observations, r.reason
+                )
+            })
+            .collect();
+        return Err(BackendError::Estimation(format!(
+            "the {} wrist keeps no observation: {}; record the episode again starting from a \
+             view both lenses share with the mapping episode",
+            side.camera_name(),
+            why.join("; ")
+        )));
+    }
     write_observations(&env.out.join(OBSERVATIONS_FILE), &obs)?;
     write_json(&env.out.join(SUMMARY_FILE), &counts)
 }
