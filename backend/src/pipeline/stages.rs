@@ -68,7 +68,7 @@ pub fn version(kind: &StageKind) -> &'static str {
         StageKind::Tool { .. } => "tool-1",
         StageKind::Localize { .. } => "localize-10",
         StageKind::Metric { .. } => "metric-2",
-        StageKind::Placement { .. } => "placement-1",
+        StageKind::Placement { .. } => "placement-2",
         StageKind::Observations { .. } => "observations-3",
         StageKind::Fusion { .. } => "fusion-4",
         StageKind::Gripper { .. } => "gripper-1",
