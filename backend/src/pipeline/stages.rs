@@ -63,7 +63,7 @@ fn input(path: &Path, message: String) -> BackendError {
 /// The version of a stage's algorithm and output format: a change re-runs the stage.
 pub fn version(kind: &StageKind) -> &'static str {
     match kind {
-        StageKind::Sync { .. } => "sync-2",
+        StageKind::Sync { .. } => "sync-3",
         StageKind::Map { .. } => "map-4",
         StageKind::Tool { .. } => "tool-1",
         StageKind::Localize { .. } => "localize-10",

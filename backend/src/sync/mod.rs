@@ -27,8 +27,12 @@ use crate::error::{BackendError, Result};
 
 /// Common sample rate every recording is brought to (Hz).
 pub const COMMON_RATE_HZ: f64 = 48_000.0;
-/// Fewest fingerprint votes for the best lag: below this a shared sound is not proven.
-pub const MIN_VOTES: u32 = 25;
+/// Fewest fingerprint votes for the best lag: below this a shared sound is not proven. Unrelated
+/// recordings give chance votes spread over every lag (60 pairs of simulated 8-20 s recordings
+/// from different sessions: at most 2 at any lag), while two cameras of one 8 s episode share
+/// 22-95 (18 episodes of six sessions, 40-322 over 8-20 s); with [`MIN_PEAK_RATIO`] and the
+/// GCC-PHAT windows after it, a chance lag does not reach 12.
+pub const MIN_VOTES: u32 = 12;
 /// Best lag votes over the runner-up: below this the lag is ambiguous (periodic sounds).
 pub const MIN_PEAK_RATIO: f64 = 4.0;
 /// Fewest GCC-PHAT windows that must agree with the coarse lag.
