@@ -1,32 +1,35 @@
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 //! Placement acceptance on a simulated mapping episode: `scene_from_front_map` within 1 mm /
-//! 0.05° of the truth despite noisy localizations and 10 % failed relocalizations.
+//! 0.05° of the truth despite noisy localizations and 10 % failed relocalizations, and on the
+//! right pairs when most are at a look-alike place.
 
-use kiwi_backend::placement::{PlacementConfig, PlacementPair, place};
+use kiwi_backend::placement::{Placement, PlacementConfig, PlacementPair, place};
 use kiwi_core::geometry::{Pose, rotation_angle_between, se3_exp};
-use kiwi_fixtures::rng::{normal, stream, uniform};
+use kiwi_fixtures::rng::{SimRng, normal, stream, uniform};
 use kiwi_fixtures::scenario::{Scenario, episode_motion};
 use kiwi_fixtures::unit::{LensModel, SimUnit};
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector6};
 
-#[test]
-fn placement_recovers_scene_from_front_map() {
-    let motion = episode_motion(Scenario::Mapping, 6, 0, 40.0);
-    let unit = SimUnit::x5("PLACE", 6, 96, LensModel::Kb4).unwrap();
+/// A 40 s simulated mapping episode of unit `seed`'s left wrist, localized every 0.1 s in an
+/// arbitrary rigid front map and in the scene (2 mm / 2 mrad noise on each pose);
+/// `spoil(k, t, front, rear, rng)` makes pair `k` wrong. The placement fitted to the pairs, and
+/// its distance from the truth (m, rad).
+fn placement_of(
+    seed: u64,
+    front_map_from_scene: Pose,
+    mut spoil: impl FnMut(usize, f64, &mut Pose, &mut Pose, &mut SimRng),
+) -> (Placement, f64, f64) {
+    let motion = episode_motion(Scenario::Mapping, seed, 0, 40.0);
+    let unit = SimUnit::x5("PLACE", seed, 96, LensModel::Kb4).unwrap();
     let front_from_imu = unit.lens("front").unwrap().cam_from_imu;
     let rear_from_imu = unit.lens("rear").unwrap().cam_from_imu;
     let rear_from_front = rear_from_imu * front_from_imu.inverse();
-    // The front map is an arbitrary rigid frame (metric after metric recovery).
-    let front_map_from_scene: Pose = Isometry3::from_parts(
-        Translation3::new(0.7, -1.3, 0.4),
-        UnitQuaternion::from_euler_angles(0.3, -0.2, 1.1),
-    );
-    let mut rng = stream(6, "placement");
+    let mut rng = stream(seed, "placement");
     let mut pairs = Vec::new();
     for k in 0..400 {
         let t = k as f64 * 0.1;
         let scene_from_imu = motion.left.pose(t);
-        let noisy = |pose: Pose, rng: &mut _| {
+        let noisy = |pose: Pose, rng: &mut SimRng| {
             let xi = Vector6::from_fn(|_, _| normal(rng, 2e-3));
             pose * se3_exp(&xi)
         };
@@ -34,11 +37,8 @@ fn placement_recovers_scene_from_front_map() {
             front_map_from_scene * scene_from_imu * front_from_imu.inverse(),
             &mut rng,
         );
-        let rear = noisy(scene_from_imu * rear_from_imu.inverse(), &mut rng);
-        if uniform(&mut rng, 0.0, 1.0) < 0.1 {
-            // A failed relocalization: off by decimetres and degrees.
-            front *= se3_exp(&Vector6::new(0.1, -0.05, 0.08, 0.3, -0.2, 0.25));
-        }
+        let mut rear = noisy(scene_from_imu * rear_from_imu.inverse(), &mut rng);
+        spoil(k, t, &mut front, &mut rear, &mut rng);
         pairs.push(PlacementPair {
             t,
             front_map_from_front: front,
@@ -58,6 +58,22 @@ fn placement_recovers_scene_from_front_map() {
         p.rms_position_m * 1e3,
         p.rms_rotation_rad.to_degrees()
     );
+    (p, dp, dr)
+}
+
+#[test]
+fn placement_recovers_scene_from_front_map() {
+    // The front map is an arbitrary rigid frame (metric after metric recovery).
+    let front_map_from_scene: Pose = Isometry3::from_parts(
+        Translation3::new(0.7, -1.3, 0.4),
+        UnitQuaternion::from_euler_angles(0.3, -0.2, 1.1),
+    );
+    let (p, dp, dr) = placement_of(6, front_map_from_scene, |_, _, front, _, rng| {
+        if uniform(rng, 0.0, 1.0) < 0.1 {
+            // A failed relocalization: off by decimetres and degrees.
+            *front *= se3_exp(&Vector6::new(0.1, -0.05, 0.08, 0.3, -0.2, 0.25));
+        }
+    });
     assert!(dp < 1e-3, "position {dp}");
     assert!(dr < 0.05f64.to_radians(), "rotation {dr}");
     assert!(p.inliers >= 340 && p.inliers <= 370);
@@ -70,51 +86,17 @@ fn placement_recovers_scene_from_front_map() {
 /// settle among the wrong pairs).
 #[test]
 fn placement_rests_on_the_largest_group_of_pairs_that_agree() {
-    let motion = episode_motion(Scenario::Mapping, 7, 0, 40.0);
-    let unit = SimUnit::x5("PLACE", 7, 96, LensModel::Kb4).unwrap();
-    let front_from_imu = unit.lens("front").unwrap().cam_from_imu;
-    let rear_from_imu = unit.lens("rear").unwrap().cam_from_imu;
-    let rear_from_front = rear_from_imu * front_from_imu.inverse();
     let front_map_from_scene: Pose = Isometry3::from_parts(
         Translation3::new(-0.4, 0.9, 0.2),
         UnitQuaternion::from_euler_angles(-0.1, 0.4, -0.7),
     );
-    let mut rng = stream(7, "placement look-alike");
-    let mut pairs = Vec::new();
-    for k in 0..400 {
-        let t = k as f64 * 0.1;
-        let scene_from_imu = motion.left.pose(t);
-        let noisy = |pose: Pose, rng: &mut _| {
-            let xi = Vector6::from_fn(|_, _| normal(rng, 2e-3));
-            pose * se3_exp(&xi)
-        };
-        let front = noisy(
-            front_map_from_scene * scene_from_imu * front_from_imu.inverse(),
-            &mut rng,
-        );
-        let mut rear = noisy(scene_from_imu * rear_from_imu.inverse(), &mut rng);
+    let (p, dp, dr) = placement_of(7, front_map_from_scene, |k, t, _, rear, _| {
         if k >= 140 {
             let wander = 0.05 * (t * 0.7).sin();
             let look_alike = Isometry3::translation(0.4 + wander, 0.05 * (t * 0.3).cos(), 0.0);
-            rear = look_alike * rear;
+            *rear = look_alike * *rear;
         }
-        pairs.push(PlacementPair {
-            t,
-            front_map_from_front: front,
-            scene_from_rear: rear,
-        });
-    }
-    let p = place(&pairs, &rear_from_front, &PlacementConfig::default()).unwrap();
-    let truth = front_map_from_scene.inverse();
-    let dp = (p.scene_from_front_map.translation.vector - truth.translation.vector).norm();
-    let dr = rotation_angle_between(&p.scene_from_front_map.rotation, &truth.rotation);
-    eprintln!(
-        "placement: {:.3} mm, {:.4} deg from truth; {} of {} inliers",
-        dp * 1e3,
-        dr.to_degrees(),
-        p.inliers,
-        p.pairs
-    );
+    });
     assert!(dp < 2e-3, "position {dp}");
     assert!(dr < 0.1f64.to_radians(), "rotation {dr}");
     assert!(p.inliers >= 130 && p.inliers <= 150, "{}", p.inliers);

@@ -1005,41 +1005,66 @@ mod tests {
         Descriptor(words)
     }
 
-    /// A true place (query camera viewing the candidate's points, query-side landmarks at a
-    /// 0.9 scale drift) is verified with the right pose and scale; the same descriptors on
-    /// shuffled positions (a wrong place whose appearance matches) are rejected.
-    #[test]
-    fn verification_accepts_the_true_place_and_rejects_a_wrong_one() {
-        let n = 200u64;
+    /// A landmark of the verification tests' place.
+    struct TestPoint {
+        /// Unit bearing in the query camera.
+        bearing: Vector3<f64>,
+        /// Position in the query camera.
+        in_camera: Vector3<f64>,
+        /// Position in the world.
+        world: Vector3<f64>,
+    }
+
+    /// The query camera of the verification tests (`cam_from_world`) and 200 landmarks spread
+    /// over its view at 2-4 m.
+    fn test_place() -> (Pose, Vec<TestPoint>) {
         let cam_from_world = Pose::from_parts(
             Vector3::new(0.1, -0.2, 0.3).into(),
             so3_exp(&Vector3::new(0.1, 0.2, -0.3)),
         );
         let world_from_cam = cam_from_world.inverse();
+        let points = (0..200u64)
+            .map(|i| {
+                let a = i as f64 * 2.399_963;
+                let bearing =
+                    Vector3::new(a.cos(), a.sin(), 0.6 * ((i % 7) as f64 - 3.0) / 3.0).normalize();
+                let in_camera = bearing * (2.0 + (i % 11) as f64 * 0.2);
+                TestPoint {
+                    bearing,
+                    in_camera,
+                    world: (world_from_cam * Point3::from(in_camera)).coords,
+                }
+            })
+            .collect();
+        (cam_from_world, points)
+    }
+
+    /// A true place (query camera viewing the candidate's points, query-side landmarks at a
+    /// 0.9 scale drift) is verified with the right pose and scale; the same descriptors on
+    /// shuffled positions (a wrong place whose appearance matches) are rejected.
+    #[test]
+    fn verification_accepts_the_true_place_and_rejects_a_wrong_one() {
+        let (cam_from_world, points) = test_place();
+        let world_from_cam = cam_from_world.inverse();
+        let n = points.len();
         let mut candidate = Vec::new();
         let mut query = Vec::new();
-        for i in 0..n {
-            let a = i as f64 * 2.399_963;
-            let dir =
-                Vector3::new(a.cos(), a.sin(), 0.6 * ((i % 7) as f64 - 3.0) / 3.0).normalize();
-            let depth = 2.0 + (i % 11) as f64 * 0.2;
-            let p_cam = dir * depth;
-            let p_world = (world_from_cam * Point3::from(p_cam)).coords;
+        for (i, p) in (0u64..).zip(&points) {
             candidate.push(CandidatePoint {
-                position: p_world,
+                position: p.world,
                 descriptor: descriptor(i),
             });
             query.push(QueryFeature {
-                bearing: dir,
+                bearing: p.bearing,
                 descriptor: descriptor(i),
                 // The query's own map is 10 % smaller around its camera (identity pose).
-                own_point: Some(p_cam * 0.9),
+                own_point: Some(p.in_camera * 0.9),
             });
         }
         let ransac = RansacOptions::default();
         let options = LoopOptions::default();
         let m = verify_place(&query, &Pose::identity(), &candidate, &ransac, &options).unwrap();
-        assert_eq!(m.inliers.len(), n as usize);
+        assert_eq!(m.inliers.len(), n);
         let centre_err = (m.cam_from_world.inverse().translation.vector
             - world_from_cam.translation.vector)
             .norm();
@@ -1065,29 +1090,21 @@ mod tests {
     /// pose that drifted beyond its radius verifies nothing.
     #[test]
     fn a_repeated_place_is_verified_around_the_current_pose() {
-        let n = 200u64;
-        let cam_from_world = Pose::from_parts(
-            Vector3::new(0.1, -0.2, 0.3).into(),
-            so3_exp(&Vector3::new(0.1, 0.2, -0.3)),
-        );
+        let (cam_from_world, points) = test_place();
         let world_from_cam = cam_from_world.inverse();
+        let n = points.len();
         let mut candidate = Vec::new();
         let mut query = Vec::new();
-        for i in 0..n {
-            let a = i as f64 * 2.399_963;
-            let dir =
-                Vector3::new(a.cos(), a.sin(), 0.6 * ((i % 7) as f64 - 3.0) / 3.0).normalize();
-            let depth = 2.0 + (i % 11) as f64 * 0.2;
-            let p_world = (world_from_cam * Point3::from(dir * depth)).coords;
+        for (i, p) in (0u64..).zip(&points) {
             candidate.push(CandidatePoint {
-                position: p_world,
+                position: p.world,
                 descriptor: descriptor(i % 50),
             });
             // One reconstruction: the query's own landmark lies where the candidate's does.
             query.push(QueryFeature {
-                bearing: dir,
+                bearing: p.bearing,
                 descriptor: descriptor(i % 50),
-                own_point: Some(p_world),
+                own_point: Some(p.world),
             });
         }
         let ransac = RansacOptions::default();
@@ -1102,7 +1119,7 @@ mod tests {
             so3_exp(&Vector3::new(0.0, 0.02, 0.0)),
         ) * cam_from_world;
         let m = verify_place_guided(&query, &drifted, &candidate, &ransac, &options).unwrap();
-        assert_eq!(m.inliers.len(), n as usize);
+        assert_eq!(m.inliers.len(), n);
         assert!(m.inliers.iter().all(|&(q, c)| q == c), "a copy was matched");
         let centre_err = (m.cam_from_world.inverse().translation.vector
             - world_from_cam.translation.vector)
