@@ -109,14 +109,14 @@ pub fn body_observations(
     rear_calibration: &LensImuCalibration,
     exposure_centre_s: f64,
 ) -> (Vec<PoseObservation>, ObservationCounts) {
-    let front_obs = lens_observations(front, Source::Front, |f| PoseObservation {
+    let front_obs = lens_observations(front, |f| PoseObservation {
         t: f.t + front_calibration.time_shift_s + exposure_centre_s,
         source: Source::Front,
         scene_from_imu: reference.scene_from_front_map
             * apply(&reference.front_metric, &f.map_from_cam)
             * front_calibration.cam_from_imu,
     });
-    let rear_obs = lens_observations(rear, Source::Rear, |r| PoseObservation {
+    let rear_obs = lens_observations(rear, |r| PoseObservation {
         t: r.t + rear_calibration.time_shift_s + exposure_centre_s,
         source: Source::Rear,
         scene_from_imu: apply(&reference.rear_metric, &r.map_from_cam)
@@ -154,7 +154,6 @@ struct RunObservation {
 /// run), in time order.
 fn lens_observations(
     rows: &[Localization],
-    source: Source,
     observe: impl Fn(&Localization) -> PoseObservation,
 ) -> Vec<RunObservation> {
     let mut out: Vec<RunObservation> = Vec::with_capacity(rows.len());
@@ -169,9 +168,10 @@ fn lens_observations(
             run += 1;
         }
         in_run = true;
-        let observation = observe(row);
-        debug_assert_eq!(observation.source, source);
-        out.push(RunObservation { run, observation });
+        out.push(RunObservation {
+            run,
+            observation: observe(row),
+        });
     }
     out.sort_by(|a, b| a.observation.t.total_cmp(&b.observation.t));
     out

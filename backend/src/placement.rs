@@ -13,8 +13,8 @@
 //! the larger one that holds together is taken; which of two such groups is right is not
 //! decided here (the placement's inlier share reports it). From there, iteratively
 //! reweighted least squares uses a Huber weight on the residual whitened by
-//! [`PlacementConfig`]'s scales, and pairs outside the inlier thresholds no weight. Inliers are pairs whose residual is within the inlier thresholds;
-//! statistics are reported over them.
+//! [`PlacementConfig`]'s scales, and pairs outside the inlier thresholds no weight. Inliers are
+//! pairs whose residual is within the inlier thresholds; statistics are reported over them.
 
 use kiwi_core::geometry::{Pose, average_rotations, rotation_angle_between};
 use nalgebra::{Isometry3, Translation3, Vector3};
@@ -85,16 +85,6 @@ const MAX_CONSENSUS_CANDIDATES: usize = 500;
 /// Fewest pairs that make a placement trustworthy.
 pub const MIN_PAIRS: usize = 3;
 
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    let n = v.len();
-    if n % 2 == 1 {
-        v[n / 2]
-    } else {
-        0.5 * (v[n / 2 - 1] + v[n / 2])
-    }
-}
-
 /// Fit `scene_from_front_map` from synchronized pairs and `rear_from_front` (`E_a`).
 pub fn place(
     pairs: &[PlacementPair],
@@ -151,30 +141,19 @@ pub fn place(
             start = Some((support, *candidate));
         }
     }
-    let mut estimate = match start {
-        Some((_, pose)) => pose,
-        None => {
-            // Unreachable with MIN_PAIRS pairs; the plain average keeps the function total.
-            let rotation = average_rotations(&rotations, None).ok_or_else(|| {
-                BackendError::Estimation("placement: rotation average failed".into())
-            })?;
-            let o = offsets(&rotation);
-            let translation = Vector3::from_fn(|i, _| median(o.iter().map(|v| v[i]).collect()));
-            Isometry3::from_parts(Translation3::from(translation), rotation)
+    let (_, mut estimate) = start
+        .ok_or_else(|| BackendError::Estimation("placement: no candidate to start from".into()))?;
+    let huber = |(p, r): &(f64, f64)| {
+        let s = ((p / config.sigma_position_m).powi(2) + (r / config.sigma_rotation_rad).powi(2))
+            .sqrt();
+        if s <= config.huber_k {
+            1.0
+        } else {
+            config.huber_k / s
         }
     };
     for _ in 0..IRLS_ROUNDS {
         let res = residuals(&estimate);
-        let huber = |(p, r): &(f64, f64)| {
-            let s = ((p / config.sigma_position_m).powi(2)
-                + (r / config.sigma_rotation_rad).powi(2))
-            .sqrt();
-            if s <= config.huber_k {
-                1.0
-            } else {
-                config.huber_k / s
-            }
-        };
         let mut weights: Vec<f64> = res
             .iter()
             .map(|r| if is_inlier(r) { huber(r) } else { 0.0 })

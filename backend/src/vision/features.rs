@@ -193,6 +193,10 @@ pub type Mask = GrayImage;
 /// edge of the image circle are blurred and their unprojection is least certain.
 pub const FOV_MASK_MARGIN_RAD: f64 = 0.03;
 
+/// Largest Hamming distance of a match whose position is already constrained (guided by a
+/// pose): ORB-SLAM's "low" threshold.
+pub const GUIDED_MAX_DISTANCE: u32 = 50;
+
 /// The mask of pixels that unproject to bearings at most `valid_fov/2 − margin` off-axis.
 pub fn fov_mask(camera: &dyn CameraModel, margin_rad: f64) -> Mask {
     let (w, h) = camera.resolution();

@@ -361,8 +361,7 @@ impl Default for LocalizerOptions {
             },
             orb: OrbOptions::default(),
             matching: MatchOptions::default(),
-            // ORB-SLAM's "low" threshold for a guided (position-constrained) match.
-            guided_max_distance: 50,
+            guided_max_distance: crate::vision::features::GUIDED_MAX_DISTANCE,
             patch_topup: true,
             // Right pairs correlate at a median of 0.92-0.97 and a pixel 15 px away at 0.16-0.58
             // (kitchen 11 and photos 13 at 320 px, best over ±2 px): at 0.8, 84-100 % of a

@@ -118,8 +118,7 @@ impl Default for LoopOptions {
             // 0.1 rad: a 2 % drift over a 10 m sweep seen at 2 m depth; a pattern repeating
             // every 0.3 m or more at up to 2.5 m puts its next copy beyond it.
             guided_radius_rad: 0.1,
-            // ORB-SLAM's "low" threshold for a position-constrained match (as localization).
-            guided_max_distance: 50,
+            guided_max_distance: crate::vision::features::GUIDED_MAX_DISTANCE,
             // Each keyframe tied to its next 3: a stiff chain, as tracking connects them.
             odometry_span: 3,
             max_iterations: 30,
