@@ -143,6 +143,49 @@ pub fn body_observations(
     (out, counts)
 }
 
+/// Eq. 3 solved for the front lens: its `map_from_cam` in its own (unscaled) front map at each
+/// of `front_times` (camera clock, s), as the rear lens's localization at the same moment (the
+/// rear frame nearest on the IMU clock, within [`PAIR_TOLERANCE_S`]) places the wrist; `None`
+/// where the rear has no pose. Both lenses share the frame's exposure, so its centre cancels.
+pub fn front_poses_from_rear(
+    front_times: &[f64],
+    rear: &[Localization],
+    reference: &SceneReference,
+    front_calibration: &LensImuCalibration,
+    rear_calibration: &LensImuCalibration,
+) -> Vec<Option<Pose>> {
+    let rear_obs = lens_observations(rear, |r| PoseObservation {
+        t: r.t + rear_calibration.time_shift_s,
+        source: Source::Rear,
+        scene_from_imu: apply(&reference.rear_metric, &r.map_from_cam)
+            * rear_calibration.cam_from_imu,
+    });
+    let front_map_from_metric = reference.front_metric.inverse();
+    let imu_from_front_cam = front_calibration.cam_from_imu.inverse();
+    let front_map_from_scene = reference.scene_from_front_map.inverse();
+    let mut j = 0usize;
+    front_times
+        .iter()
+        .map(|&t_cam| {
+            let t = t_cam + front_calibration.time_shift_s;
+            while j < rear_obs.len() && rear_obs[j].observation.t < t - PAIR_TOLERANCE_S {
+                j += 1;
+            }
+            let nearest = rear_obs[j..]
+                .iter()
+                .take_while(|r| r.observation.t <= t + PAIR_TOLERANCE_S)
+                .min_by(|a, b| {
+                    (a.observation.t - t)
+                        .abs()
+                        .total_cmp(&(b.observation.t - t).abs())
+                })?;
+            let metric_map_from_cam =
+                front_map_from_scene * nearest.observation.scene_from_imu * imu_from_front_cam;
+            Some(apply(&front_map_from_metric, &metric_map_from_cam))
+        })
+        .collect()
+}
+
 /// An observation and the run of its lens it belongs to.
 #[derive(Debug, Clone, Copy)]
 struct RunObservation {
@@ -422,5 +465,76 @@ mod tests {
         let front = stream(60, |_| Some(Vector3::zeros()));
         let rear = stream(60, |_| Some(Vector3::new(0.03, 0.02, 0.0)));
         assert!(observe(&front, &rear).withdrawn_runs.is_empty());
+    }
+
+    /// The front poses predicted from the rear (eq. 3 solved for the front) give, through eq. 3,
+    /// the rear's body observations back, through scaled maps, a placement, different
+    /// camera–IMU calibrations and time shifts; a rear frame lost leaves the front frame of its
+    /// moment without a pose.
+    #[test]
+    fn front_poses_from_the_rear_observe_the_body_where_the_rear_does() {
+        use nalgebra::{Translation3, UnitQuaternion};
+        let turn = |x: f64, y: f64, z: f64| UnitQuaternion::from_euler_angles(x, y, z);
+        let reference = SceneReference {
+            front_metric: Sim3 {
+                scale: 0.37,
+                rotation: turn(0.1, -0.3, 0.7),
+                translation: Vector3::new(0.2, -1.0, 0.4),
+            },
+            rear_metric: Sim3 {
+                scale: 2.4,
+                rotation: turn(-0.5, 0.2, 0.1),
+                translation: Vector3::new(-0.3, 0.1, 1.2),
+            },
+            scene_from_front_map: Pose::from_parts(
+                Translation3::new(0.5, 0.2, -0.1),
+                turn(0.3, 0.0, -1.1),
+            ),
+        };
+        let front_cal = LensImuCalibration {
+            cam_from_imu: Pose::from_parts(
+                Translation3::new(0.01, 0.02, 0.03),
+                turn(3.1, 0.0, 0.1),
+            ),
+            time_shift_s: 0.0012,
+            imu_noise: None,
+        };
+        let rear_cal = LensImuCalibration {
+            cam_from_imu: Pose::from_parts(
+                Translation3::new(-0.01, 0.0, 0.02),
+                turn(0.0, 0.1, 0.0),
+            ),
+            time_shift_s: 0.0009,
+            imu_noise: None,
+        };
+        let rear: Vec<Localization> = stream(30, |i| (i != 12).then(Vector3::zeros))
+            .into_iter()
+            .map(|mut r| {
+                r.map_from_cam.rotation = turn(0.02 * r.t, 0.5, -0.01 * r.t);
+                r
+            })
+            .collect();
+        let times: Vec<f64> = rear.iter().map(|r| r.t).collect();
+        let predicted = front_poses_from_rear(&times, &rear, &reference, &front_cal, &rear_cal);
+        assert!(predicted[12].is_none());
+        assert_eq!(predicted.iter().filter(|p| p.is_some()).count(), 29);
+        let front: Vec<Localization> = (times.iter().zip(&predicted))
+            .map(|(&t, p)| Localization {
+                t,
+                valid: p.is_some(),
+                map_from_cam: p.unwrap_or_else(Pose::identity),
+            })
+            .collect();
+        let (obs, counts) =
+            body_observations(&front, &rear, &reference, &front_cal, &rear_cal, 0.0);
+        assert!(counts.withdrawn_runs.is_empty());
+        let (f, r): (Vec<&PoseObservation>, Vec<&PoseObservation>) =
+            obs.iter().partition(|o| o.source == Source::Front);
+        assert_eq!((f.len(), r.len()), (29, 29));
+        for (a, b) in f.iter().zip(&r) {
+            let d = a.scene_from_imu.inverse() * b.scene_from_imu;
+            assert!(d.translation.vector.norm() < 1e-9, "{d:?}");
+            assert!(d.rotation.angle() < 1e-9, "{d:?}");
+        }
     }
 }

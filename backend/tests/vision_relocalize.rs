@@ -24,12 +24,17 @@
 //! (kitchens 7, 12 and 15 find the map only after 1.4-2.5 s; the backward pass fills the frames
 //! before). A third test localizes a sweep beyond the divided room's partition (a
 //! part of the room the map never saw, papered with the same photos) in the table side's map:
-//! it must be reported lost, not placed. A fourth maps a texture-poor workshop whose map drifts
-//! (10 % of the path): the map's own check must refuse it and the query be lost, saying why.
+//! it must be reported lost, not placed, even around the true poses the other lens would
+//! give. A fourth maps a texture-poor workshop whose map drifts (10 % of the path): the map's
+//! own check must refuse it and the query be lost, saying why.
 //! A fifth localizes a kitchen revisit whose whole-map match fits a look-alike place one
 //! pattern period away: it must be refused at relocalization (the map repeats the view) or
 //! withdrawn where it meets the right run, and no pose be output over 5 cm. A sixth checks that
-//! a relocalized pose is fitted again on the landmarks correlation finds around it.
+//! a relocalized pose is fitted again on the landmarks correlation finds around it. A seventh
+//! gives a lens that cannot relocalize the poses its wrist's other lens would give (the truth,
+//! off by what the other lens's localization and the placement are off by, with a gap where
+//! the other lens is lost): the stream must be found from its first frame and carried through
+//! the gap, and poses given a look-alike period away must not be taken up.
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
 mod common;
@@ -37,11 +42,15 @@ mod common;
 use common::assert_lost_frames_say_why;
 use common::reloc::{Alignment, Take, pose_at, room_session, truth_poses};
 
-use kiwi_backend::vision::episode::{LensStream, build_map, localize_stream};
+use kiwi_backend::vision::episode::{
+    LensStream, build_map, localize_stream, localize_stream_with_other_lens,
+};
 use kiwi_backend::vision::localize::{LocalizationStatus, LocalizerOptions, is_refused_as_copy};
 use kiwi_backend::vision::runs::is_withdrawn;
+use kiwi_core::geometry::Pose;
 use kiwi_fixtures::scenario::Scenario;
 use kiwi_fixtures::scene::RoomKind;
+use nalgebra::{Translation3, UnitQuaternion, Vector3};
 
 /// Image size of the ten rooms (px).
 const RESOLUTION: u32 = 320;
@@ -410,6 +419,27 @@ fn a_part_of_the_room_the_map_never_saw_is_reported_lost() {
     );
     assert_lost_frames_say_why(&results);
     assert!(s.localized_fraction <= MAX_LOCALIZED, "{s:?}");
+    // Nor when the wrist's other lens says where the wrist truly is: the map has nothing of
+    // this view to match around that pose.
+    let alignment = Alignment::new(&map, &truth_poses(&mapping, camera, lens));
+    let qtruth = truth_poses(&query, camera, lens);
+    let given = other_lens_poses(&qstream, &qtruth, &alignment, Vector3::zeros(), 0.0, |_| {
+        true
+    });
+    let (results, s) = localize_stream_with_other_lens(
+        &map,
+        &qstream,
+        &LocalizerOptions::default(),
+        &given,
+        &mut |_, _| {},
+    )
+    .unwrap();
+    eprintln!(
+        "beyond the partition, around the true poses: {}/{} localized",
+        s.localized, s.frames
+    );
+    assert_lost_frames_say_why(&results);
+    assert!(s.localized_fraction <= MAX_LOCALIZED, "{s:?}");
 }
 
 #[test]
@@ -463,4 +493,137 @@ fn a_map_that_drifted_is_refused_and_serves_no_pose() {
         "{:?}",
         results.first()
     );
+}
+
+/// The poses a wrist's other lens gives this lens (`map_from_cam` in this lens's map): the
+/// truth moved by `offset_m` (world) and turned by `turn_deg`, at the frames `given` keeps.
+fn other_lens_poses(
+    stream: &LensStream,
+    truth: &[(f64, Pose)],
+    alignment: &Alignment,
+    offset_m: Vector3<f64>,
+    turn_deg: f64,
+    given: impl Fn(usize) -> bool,
+) -> Vec<Option<Pose>> {
+    let turn =
+        UnitQuaternion::from_scaled_axis(Vector3::new(0.6, -0.8, 0.0) * turn_deg.to_radians());
+    (stream.frames.iter().enumerate())
+        .map(|(i, f)| {
+            given(i).then(|| {
+                let t = pose_at(truth, f.t);
+                let moved = Pose::from_parts(
+                    Translation3::from(t.translation.vector + offset_m),
+                    t.rotation * turn,
+                );
+                alignment.cam_from_map(&moved).inverse()
+            })
+        })
+        .collect()
+}
+
+#[test]
+fn a_lens_that_cannot_relocalize_is_found_around_the_other_lens_pose() {
+    // The studio (seed 3, left front): relocalization is switched off (no relocalized pose
+    // is accepted, no whole-map match), so the stream alone finds nothing. The other lens's
+    // poses are the truth 2 cm and 1° off (the rear's localization and the placement's error),
+    // missing over the middle third (the other lens lost there).
+    const OFF_M: f64 = 0.02;
+    const TURN_DEG: f64 = 1.0;
+    /// A look-alike place one pattern period away (tiles, wallpaper, doors).
+    const LOOK_ALIKE_M: f64 = 0.5;
+    let options = LocalizerOptions {
+        min_inliers_relocalization: usize::MAX,
+        relocalization_map_candidates: 0,
+        ..LocalizerOptions::default()
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let lens_spec = "left/front";
+    let (camera, lens) = lens_spec.split_once('/').unwrap();
+    let mapping = room_session(
+        dir.path(),
+        "studio-scan",
+        RoomKind::Studio,
+        3,
+        RESOLUTION,
+        lens_spec,
+        SCAN,
+    );
+    let query = room_session(
+        dir.path(),
+        "studio-revisit",
+        RoomKind::Studio,
+        3,
+        RESOLUTION,
+        lens_spec,
+        REVISIT,
+    );
+    let stream = LensStream::open(&mapping, camera, lens, None, None).unwrap();
+    let (map, _) = build_map(&stream, &mut |_, _| {}).unwrap();
+    let alignment = Alignment::new(&map, &truth_poses(&mapping, camera, lens));
+    let qstream = LensStream::open(&query, camera, lens, None, None).unwrap();
+    let qtruth = truth_poses(&query, camera, lens);
+    let n = qstream.frames.len();
+    let errors = |results: &[kiwi_backend::vision::localize::FrameLocalization]| -> Vec<f64> {
+        let mut e: Vec<f64> = (results.iter())
+            .filter_map(|r| {
+                r.map_from_cam.map(|p| {
+                    (alignment.world_from_cam(&p).translation.vector
+                        - pose_at(&qtruth, r.t).translation.vector)
+                        .norm()
+                })
+            })
+            .collect();
+        e.sort_by(f64::total_cmp);
+        e
+    };
+
+    let (alone, s) = localize_stream(&map, &qstream, &options, &mut |_, _| {}).unwrap();
+    assert_eq!(s.localized, 0, "relocalization was meant to be off: {s:?}");
+    assert_lost_frames_say_why(&alone);
+
+    let given = other_lens_poses(
+        &qstream,
+        &qtruth,
+        &alignment,
+        Vector3::new(OFF_M, 0.0, 0.0),
+        TURN_DEG,
+        |i| i < n / 3 || i >= 2 * n / 3,
+    );
+    let (results, s) =
+        localize_stream_with_other_lens(&map, &qstream, &options, &given, &mut |_, _| {}).unwrap();
+    let e = errors(&results);
+    eprintln!(
+        "around the other lens's poses: {}/{} localized ({} from them), first frame {:?}, error median {:.1} mm, worst {:.1} mm",
+        s.localized,
+        s.frames,
+        s.from_other_lens,
+        results[0].status,
+        e.get(e.len() / 2).map_or(f64::NAN, |x| x * 1e3),
+        e.last().map_or(f64::NAN, |x| x * 1e3),
+    );
+    assert_lost_frames_say_why(&results);
+    assert_ne!(results[0].status, LocalizationStatus::Lost);
+    assert!(s.localized_fraction >= MIN_LOCALIZED, "{s:?}");
+    assert_eq!(s.from_other_lens, s.localized);
+    assert!(e.last().is_some_and(|&x| x <= MAX_ERROR_M), "{e:?}");
+
+    let look_alike = other_lens_poses(
+        &qstream,
+        &qtruth,
+        &alignment,
+        Vector3::new(LOOK_ALIKE_M, 0.0, 0.0),
+        0.0,
+        |_| true,
+    );
+    let (results, s) =
+        localize_stream_with_other_lens(&map, &qstream, &options, &look_alike, &mut |_, _| {})
+            .unwrap();
+    let e = errors(&results);
+    eprintln!(
+        "around poses {LOOK_ALIKE_M} m off: {}/{} localized, worst {:.1} mm",
+        s.localized,
+        s.frames,
+        e.last().map_or(0.0, |x| x * 1e3)
+    );
+    assert!(e.iter().all(|&x| x <= MAX_ERROR_M), "{e:?}");
 }

@@ -7,7 +7,9 @@
 //! `placement-<wrist>` (`G_a`, eq. 2).
 //!
 //! Per episode, once the maps are frozen: `sync` → `localize-<wrist>-<lens>` (four streams, no map
-//! updates) → `observations-<wrist>` (eq. 3) → `fusion-<wrist>` (eq. 4) → `gripper-<wrist>` →
+//! updates; after the map episode a front stream also starts from the poses its wrist's rear
+//! lens gives, so it waits for that stream, the metric maps and the placement) →
+//! `observations-<wrist>` (eq. 3) → `fusion-<wrist>` (eq. 4) → `gripper-<wrist>` →
 //! `outputs` (tool tip on the session timeline, TUM files, `quality.json`). With a head camera,
 //! `head` (the hat marker in both rear streams, fused into the head's track, and the head
 //! camera's poses) runs after both wrists' fusion and before `outputs`, which publishes it.
@@ -305,12 +307,26 @@ pub fn build(ctx: &SessionContext, episodes: &[String]) -> Vec<StageNode> {
             Vec::new(),
         );
         for &side in &sides {
-            for lens in [Lens::Front, Lens::Rear] {
-                let dep = id_of(&StageKind::Map {
-                    map: MapName::for_lens(side, lens),
-                });
-                push(localize(episode, side, lens), vec![dep]);
-            }
+            // After the map episode, a front stream is also tried around the poses its rear
+            // lens gives (through the frozen metric maps and the placement).
+            push(
+                localize(episode, side, Lens::Rear),
+                vec![id_of(&StageKind::Map { map: MapName::Rear })],
+            );
+            push(
+                localize(episode, side, Lens::Front),
+                vec![
+                    id_of(&StageKind::Map {
+                        map: MapName::Front(side),
+                    }),
+                    id_of(&localize(episode, side, Lens::Rear)),
+                    id_of(&StageKind::Metric {
+                        map: MapName::Front(side),
+                    }),
+                    id_of(&StageKind::Metric { map: MapName::Rear }),
+                    id_of(&StageKind::Placement { side }),
+                ],
+            );
             push(
                 StageKind::Observations {
                     episode: episode.clone(),

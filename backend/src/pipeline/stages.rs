@@ -27,9 +27,11 @@ use crate::formats::tables::{
 };
 use crate::fusion::{FusionConfig, fuse, visual_sigma_from_disagreement};
 use crate::metric::MetricConfig;
-use crate::observations::{SceneReference, body_observations};
+use crate::observations::{SceneReference, body_observations, front_poses_from_rear};
 use crate::placement::PlacementConfig;
-use crate::vision::episode::{LensStream, build_map_with, localize_stream, write_poses_csv};
+use crate::vision::episode::{
+    LensStream, build_map_with, localize_stream_with_other_lens, write_poses_csv,
+};
 use crate::vision::localize::LocalizerOptions;
 use crate::vision::map::VisualMap;
 
@@ -66,7 +68,7 @@ pub fn version(kind: &StageKind) -> &'static str {
         StageKind::Sync { .. } => "sync-3",
         StageKind::Map { .. } => "map-4",
         StageKind::Tool { .. } => "tool-1",
-        StageKind::Localize { .. } => "localize-10",
+        StageKind::Localize { .. } => "localize-11",
         StageKind::Metric { .. } => "metric-2",
         StageKind::Placement { .. } => "placement-2",
         StageKind::Observations { .. } => "observations-3",
@@ -768,14 +770,78 @@ fn run_localize(env: &StageEnv<'_>, episode: &str, side: Side, lens: Lens) -> Re
     });
     let map = VisualMap::load(&map_dir.join(MAP_FILE))?;
     let stream = open_stream(env.ctx, episode, side, lens)?;
-    let (results, summary) = localize_stream(
+    let other_lens = if lens == Lens::Front && episode != env.ctx.session.map_episode {
+        let w = wrist(env.ctx, side)?;
+        let rear = localizations_of(env, episode, side, Lens::Rear)?;
+        let times: Vec<f64> = stream.frames.iter().map(|f| f.t).collect();
+        front_poses_from_rear(
+            &times,
+            &rear,
+            &scene_reference(env.ctx, side)?,
+            &w.front,
+            &w.rear,
+        )
+    } else {
+        Vec::new()
+    };
+    let (results, summary) = localize_stream_with_other_lens(
         &map,
         &stream,
         &LocalizerOptions::default(),
+        &other_lens,
         &mut |done, total| (env.progress)(done, total),
     )?;
+    if let Some(agreement) = other_lens_agreement(&results, &other_lens) {
+        let scale = scene_reference(env.ctx, side)?.front_metric.scale;
+        tracing::info!(
+            "{episode}/{}: the rear lens's prediction of the front pose is {:.1} mm and {:.2}° \
+             off the front's own pose (median over {} frames; 95th percentile {:.1} mm)",
+            side.camera_name(),
+            1e3 * scale * agreement.median_distance,
+            agreement.median_angle_deg,
+            agreement.frames,
+            1e3 * scale * agreement.p95_distance,
+        );
+    }
     write_poses_csv(&env.out.join(POSES_FILE), &results)?;
     write_summary(env.out, &summary)
+}
+
+/// How far the other lens's predictions lie from the poses a stream found itself.
+struct LensAgreement {
+    /// Frames with both.
+    frames: usize,
+    /// Median position difference (map units).
+    median_distance: f64,
+    /// 95th percentile of the position difference (map units).
+    p95_distance: f64,
+    /// Median rotation difference (degrees).
+    median_angle_deg: f64,
+}
+
+/// [`LensAgreement`] of `results` with `predicted` (`map_from_cam` per frame); `None` without
+/// a frame that has both.
+fn other_lens_agreement(
+    results: &[crate::vision::localize::FrameLocalization],
+    predicted: &[Option<kiwi_core::geometry::Pose>],
+) -> Option<LensAgreement> {
+    let (mut distances, mut angles): (Vec<f64>, Vec<f64>) = results
+        .iter()
+        .zip(predicted)
+        .filter_map(|(r, p)| {
+            let d = r.map_from_cam?.inverse() * (*p)?;
+            Some((d.translation.vector.norm(), d.rotation.angle().to_degrees()))
+        })
+        .unzip();
+    distances.sort_by(f64::total_cmp);
+    angles.sort_by(f64::total_cmp);
+    let n = distances.len();
+    (n > 0).then(|| LensAgreement {
+        frames: n,
+        median_distance: distances[n / 2],
+        p95_distance: distances[(n * 95 / 100).min(n - 1)],
+        median_angle_deg: angles[n / 2],
+    })
 }
 
 fn localizations_of(

@@ -31,6 +31,16 @@ impl Sim3 {
     pub fn transform_point(&self, p: &Vector3<f64>) -> Vector3<f64> {
         self.rotation * p * self.scale + self.translation
     }
+
+    /// The inverse similarity (`a_from_b` of a `b_from_a`).
+    pub fn inverse(&self) -> Self {
+        let r = self.rotation.inverse();
+        Self {
+            scale: 1.0 / self.scale,
+            rotation: r,
+            translation: -(r * self.translation) / self.scale,
+        }
+    }
 }
 
 /// Fewest point pairs of a similarity fit (three non-collinear points fix it).

@@ -79,6 +79,9 @@ pub enum RelocalizationSource {
     /// The whole map matched at once, without place recognition (the attempt a look-alike
     /// place in repeated texture can fool).
     WholeMap,
+    /// Guided matching around the pose the wrist's other lens gives at the same moment (that
+    /// lens localized in its own map, on other walls: independent evidence of the place).
+    OtherLens,
 }
 
 impl RelocalizationSource {
@@ -87,6 +90,7 @@ impl RelocalizationSource {
         match self {
             Self::Window => "relocalized on a place-recognition window",
             Self::WholeMap => "relocalized by a whole-map match",
+            Self::OtherLens => "relocalized around the other lens's pose",
         }
     }
 }
@@ -923,9 +927,77 @@ impl Localizer {
             return Ok(None);
         }
         let Some(e) = self.guided_estimate(frame, image, prior, Vec::new(), &mut None)? else {
+            tracing::debug!("frame {frame}: guided matching around the given pose: no pose");
             return Ok(None);
         };
-        if self.accept(&e, self.options.min_inliers).is_err() {
+        if let Err(why) = self.accept(&e, self.options.min_inliers) {
+            tracing::debug!(
+                "frame {frame}: guided matching around the given pose: {} of {} inliers, {why}",
+                e.inliers.len(),
+                e.candidates
+            );
+            return Ok(None);
+        }
+        let pyramid = KltPyramid::new(image, &self.options.klt)?;
+        Ok(Some(self.finish(
+            frame,
+            t,
+            &e,
+            pyramid,
+            LocalizationStatus::Tracked,
+            usize::MAX,
+        )))
+    }
+
+    /// Localize a frame around a pose another source predicts (the wrist's other lens through
+    /// the placement), which may be off by up to `radius_rad` in the direction it sees each
+    /// landmark: guided matching over the whole frame within that radius gives a first pose (a
+    /// hypothesis, held to `relocalization_hypothesis_inliers`), which is matched again around
+    /// itself within the usual radius and judged by the tracking rules, as
+    /// [`Self::process_from`]. `None` when that gives no accepted pose. The pose is
+    /// carried to the next frame as after tracking.
+    pub fn process_around(
+        &mut self,
+        frame: u32,
+        t: f64,
+        image: &GrayImage,
+        prior: &Pose,
+        radius_rad: f64,
+    ) -> Result<Option<FrameLocalization>> {
+        if self.refused.is_some() {
+            return Ok(None);
+        }
+        let feats = self.orb.extract(image, Some(&self.mask), &self.camera)?;
+        let radius_px = radius_rad / pixel_angle(&self.camera);
+        let grid = KeypointGrid::new(&feats.keypoints, radius_px);
+        let candidates =
+            self.viewing_landmarks(prior, self.options.relocalization_guided_keyframes);
+        let wide = self.guided_matches_within(prior, &candidates, &feats, &grid, radius_px);
+        let hypothesis = self.ransac(frame, 5, self.options.relocalization_hypothesis_inliers);
+        let first = match self.estimate(&wide, &hypothesis) {
+            Ok(e) => e,
+            Err(why) => {
+                tracing::debug!(
+                    "frame {frame}: guided matching within {radius_px:.1} px of the given pose: \
+                     {} matches, {why}",
+                    wide.len()
+                );
+                return Ok(None);
+            }
+        };
+        let mut features = Some(feats);
+        let Some(e) =
+            self.guided_estimate(frame, image, &first.cam_from_map, Vec::new(), &mut features)?
+        else {
+            tracing::debug!("frame {frame}: guided matching around the first pose: no pose");
+            return Ok(None);
+        };
+        if let Err(why) = self.accept(&e, self.options.min_inliers) {
+            tracing::debug!(
+                "frame {frame}: around the given pose: {} of {} inliers, {why}",
+                e.inliers.len(),
+                e.candidates
+            );
             return Ok(None);
         }
         let pyramid = KltPyramid::new(image, &self.options.klt)?;
@@ -1189,9 +1261,26 @@ impl Localizer {
         features: &FrameFeatures,
         grid: &KeypointGrid,
     ) -> Vec<Correspondence> {
+        self.guided_matches_within(
+            cam_from_map,
+            landmarks,
+            features,
+            grid,
+            self.options.guided_radius_px,
+        )
+    }
+
+    /// [`Self::guided_matches`] within `r` px of each projection.
+    fn guided_matches_within(
+        &self,
+        cam_from_map: &Pose,
+        landmarks: &[u32],
+        features: &FrameFeatures,
+        grid: &KeypointGrid,
+        r: f64,
+    ) -> Vec<Correspondence> {
         let max_off_axis = 0.5 * self.camera.valid_fov();
         let cos_max = max_off_axis.cos();
-        let r = self.options.guided_radius_px;
         // (keypoint, distance, landmark) proposals.
         let mut proposals: Vec<(usize, u32, u32)> = Vec::new();
         let mut near = Vec::new();

@@ -370,15 +370,6 @@ fn compose(a: &Sim3, b: &Sim3) -> Sim3 {
     }
 }
 
-fn inverse(a: &Sim3) -> Sim3 {
-    let r = a.rotation.inverse();
-    Sim3 {
-        scale: 1.0 / a.scale,
-        rotation: r,
-        translation: -(r * a.translation) / a.scale,
-    }
-}
-
 fn from_pose(p: &Pose) -> Sim3 {
     Sim3 {
         scale: 1.0,
@@ -395,7 +386,7 @@ fn to_pose(s: &Sim3) -> Pose {
 
 /// 7-vector residual of `z⁻¹ ∘ a ∘ b⁻¹` (rotation vector, translation, log scale).
 fn edge_residual(z_inv: &Sim3, a: &Sim3, b: &Sim3) -> [f64; 7] {
-    let e = compose(&compose(z_inv, a), &inverse(b));
+    let e = compose(&compose(z_inv, a), &b.inverse());
     let w = so3_log(&e.rotation);
     [
         w.x,
@@ -778,7 +769,7 @@ pub fn close_loops(
     let correction = |v: &Verified| -> Sim3 {
         // world_cand_from_world_query = node⁻¹ ∘ current.
         compose(
-            &inverse(&v.node),
+            &v.node.inverse(),
             &from_pose(&recon.keyframes[v.query].cam_from_world),
         )
     };
@@ -845,11 +836,11 @@ pub fn close_loops(
     let mut edges = Vec::new();
     for a in 0..n {
         for b in a + 1..(a + 1 + options.odometry_span).min(n) {
-            let z = compose(&nodes[a], &inverse(&nodes[b]));
+            let z = compose(&nodes[a], &nodes[b].inverse());
             edges.push(Edge {
                 a,
                 b,
-                z_inv: inverse(&z),
+                z_inv: z.inverse(),
                 weight,
             });
         }
@@ -857,11 +848,11 @@ pub fn close_loops(
     for &i in &accepted {
         let v = &verified[i];
         // cam_query_from_cam_candidate.
-        let z = compose(&v.node, &inverse(&nodes[v.candidate]));
+        let z = compose(&v.node, &nodes[v.candidate].inverse());
         edges.push(Edge {
             a: v.query,
             b: v.candidate,
-            z_inv: inverse(&z),
+            z_inv: z.inverse(),
             weight: weight.map(|w| w * LOOP_EDGE_WEIGHT),
         });
         report.closed.push(LoopClosure {
@@ -884,10 +875,10 @@ pub fn close_loops(
     let before = loop_error(&nodes);
     for e in edges.iter().skip(edges.len() - report.closed.len()) {
         let r = edge_residual(&e.z_inv, &nodes[e.a], &nodes[e.b]);
-        let z = inverse(&e.z_inv);
+        let z = e.z_inv.inverse();
         // Query centre in the candidate camera's frame, measured and current.
-        let meas = inverse(&z).transform_point(&Vector3::zeros());
-        let cur = compose(&nodes[e.b], &inverse(&nodes[e.a])).transform_point(&Vector3::zeros());
+        let meas = z.inverse().transform_point(&Vector3::zeros());
+        let cur = compose(&nodes[e.b], &nodes[e.a].inverse()).transform_point(&Vector3::zeros());
         tracing::debug!(query = e.a, candidate = e.b, ?r, ?meas, ?cur, "loop edge");
     }
     solve_pose_graph(&mut nodes, &edges, options.max_iterations);
@@ -909,7 +900,7 @@ pub fn close_loops(
             continue;
         };
         let local = old_nodes[k].transform_point(p);
-        *p = inverse(&nodes[k]).transform_point(&local);
+        *p = nodes[k].inverse().transform_point(&local);
     }
     // Non-keyframe poses follow their preceding keyframe.
     let kf_frames: Vec<u32> = recon.keyframes.iter().map(|kf| kf.frame).collect();
@@ -917,7 +908,7 @@ pub fn close_loops(
         let k = kf_frames
             .partition_point(|&f| f <= *frame)
             .saturating_sub(1);
-        let rel = compose(&from_pose(pose), &inverse(&old_nodes[k]));
+        let rel = compose(&from_pose(pose), &old_nodes[k].inverse());
         let fixed = compose(&rel, &nodes[k]);
         *pose = to_pose(&fixed);
     }
@@ -1149,7 +1140,7 @@ mod tests {
         // Drifted odometry: each step scaled by 1.01 and turned by 0.01 rad more.
         let mut nodes = vec![truth[0]];
         for k in 1..n {
-            let step = compose(&truth[k], &inverse(&truth[k - 1]));
+            let step = compose(&truth[k], &truth[k - 1].inverse());
             let drift = Sim3 {
                 scale: 1.0,
                 rotation: so3_exp(&Vector3::new(0.0, 0.01, 0.01)),
@@ -1162,24 +1153,24 @@ mod tests {
         let mut edges = Vec::new();
         for a in 0..n {
             for b in a + 1..(a + 3).min(n) {
-                let z = compose(&nodes[a], &inverse(&nodes[b]));
+                let z = compose(&nodes[a], &nodes[b].inverse());
                 edges.push(Edge {
                     a,
                     b,
-                    z_inv: inverse(&z),
+                    z_inv: z.inverse(),
                     weight,
                 });
             }
         }
-        let z = compose(&truth[n - 1], &inverse(&truth[0]));
+        let z = compose(&truth[n - 1], &truth[0].inverse());
         edges.push(Edge {
             a: n - 1,
             b: 0,
-            z_inv: inverse(&z),
+            z_inv: z.inverse(),
             weight: [100.0; 7],
         });
         let err = |nodes: &[Sim3]| {
-            let r = edge_residual(&inverse(&z), &nodes[n - 1], &nodes[0]);
+            let r = edge_residual(&z.inverse(), &nodes[n - 1], &nodes[0]);
             r.iter().map(|v| v * v).sum::<f64>().sqrt()
         };
         let before = err(&nodes);

@@ -274,28 +274,33 @@ pub fn conflicts(results: &[FrameLocalization], book: &RunBook, depth: f64) -> V
     out
 }
 
-/// The runs to withdraw for `conflicts`: of two runs that cannot both be right, the one begun
-/// by a whole-map match when the other was begun on a place-recognition window; both when their
-/// starts are alike.
+/// How much a run's start rests on: a whole-map match (which a look-alike place can fool) least,
+/// a place-recognition window more, the other lens's independent pose most.
+fn start_weight(source: RelocalizationSource) -> u8 {
+    match source {
+        RelocalizationSource::WholeMap => 0,
+        RelocalizationSource::Window => 1,
+        RelocalizationSource::OtherLens => 2,
+    }
+}
+
+/// The runs to withdraw for `conflicts`: of two runs that cannot both be right, the one whose
+/// start rests on less ([`start_weight`]); both when their starts are alike.
 pub fn runs_to_withdraw(conflicts: &[Conflict], book: &RunBook) -> BTreeSet<usize> {
     let mut out = BTreeSet::new();
     for c in conflicts {
         let (Some(ra), Some(rb)) = (book.frame_run[c.before], book.frame_run[c.after]) else {
             continue;
         };
-        let (sa, sb) = (book.runs[ra].source, book.runs[rb].source);
-        use RelocalizationSource::{WholeMap, Window};
-        match (sa, sb) {
-            (WholeMap, Window) => {
-                out.insert(ra);
-            }
-            (Window, WholeMap) => {
-                out.insert(rb);
-            }
-            _ => {
-                out.insert(ra);
-                out.insert(rb);
-            }
+        let (wa, wb) = (
+            start_weight(book.runs[ra].source),
+            start_weight(book.runs[rb].source),
+        );
+        if wa <= wb {
+            out.insert(ra);
+        }
+        if wb <= wa {
+            out.insert(rb);
         }
     }
     out
