@@ -66,7 +66,7 @@ fn input(path: &Path, message: String) -> BackendError {
 pub fn version(kind: &StageKind) -> &'static str {
     match kind {
         StageKind::Sync { .. } => "sync-3",
-        StageKind::Map { .. } => "map-4",
+        StageKind::Map { .. } => "map-5",
         StageKind::Tool { .. } => "tool-1",
         StageKind::Localize { .. } => "localize-11",
         StageKind::Metric { .. } => "metric-2",
