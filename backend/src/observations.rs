@@ -168,22 +168,28 @@ pub fn front_poses_from_rear(
         .iter()
         .map(|&t_cam| {
             let t = t_cam + front_calibration.time_shift_s;
-            while j < rear_obs.len() && rear_obs[j].observation.t < t - PAIR_TOLERANCE_S {
-                j += 1;
-            }
-            let nearest = rear_obs[j..]
-                .iter()
-                .take_while(|r| r.observation.t <= t + PAIR_TOLERANCE_S)
-                .min_by(|a, b| {
-                    (a.observation.t - t)
-                        .abs()
-                        .total_cmp(&(b.observation.t - t).abs())
-                })?;
+            let nearest = nearest_at(&rear_obs, &mut j, t)?;
             let metric_map_from_cam =
                 front_map_from_scene * nearest.observation.scene_from_imu * imu_from_front_cam;
             Some(apply(&front_map_from_metric, &metric_map_from_cam))
         })
         .collect()
+}
+
+/// The observation of `obs` (sorted by time) nearest `t` within [`PAIR_TOLERANCE_S`]; `j` is
+/// the search's start, advanced past everything too early (queries must come in time order).
+fn nearest_at<'a>(obs: &'a [RunObservation], j: &mut usize, t: f64) -> Option<&'a RunObservation> {
+    while *j < obs.len() && obs[*j].observation.t < t - PAIR_TOLERANCE_S {
+        *j += 1;
+    }
+    obs[*j..]
+        .iter()
+        .take_while(|r| r.observation.t <= t + PAIR_TOLERANCE_S)
+        .min_by(|a, b| {
+            (a.observation.t - t)
+                .abs()
+                .total_cmp(&(b.observation.t - t).abs())
+        })
 }
 
 /// An observation and the run of its lens it belongs to.
@@ -230,19 +236,7 @@ fn cross_check(
     let mut distances: BTreeMap<(usize, usize), Vec<f64>> = BTreeMap::new();
     let mut j = 0usize;
     for f in front {
-        let t = f.observation.t;
-        while j < rear.len() && rear[j].observation.t < t - PAIR_TOLERANCE_S {
-            j += 1;
-        }
-        let nearest = rear[j..]
-            .iter()
-            .take_while(|r| r.observation.t <= t + PAIR_TOLERANCE_S)
-            .min_by(|a, b| {
-                (a.observation.t - t)
-                    .abs()
-                    .total_cmp(&(b.observation.t - t).abs())
-            });
-        if let Some(r) = nearest {
+        if let Some(r) = nearest_at(rear, &mut j, f.observation.t) {
             let d = (f.observation.scene_from_imu.translation.vector
                 - r.observation.scene_from_imu.translation.vector)
                 .norm();

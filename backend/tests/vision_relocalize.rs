@@ -116,6 +116,50 @@ struct Revisit {
     errors: Vec<f64>,
 }
 
+/// A room's scan mapped with one lens, and a later take of the same lens opened: the map's
+/// alignment to the truth and the take's truth poses come with it.
+struct MappedTake {
+    map: kiwi_backend::vision::map::VisualMap,
+    summary: kiwi_backend::vision::episode::MapSummary,
+    alignment: Alignment,
+    query: LensStream,
+    truth: Vec<(f64, Pose)>,
+}
+
+/// Simulate the scan and `take` of `room`/`seed` for `lens_spec` under `root` (named after
+/// `tag`), map the scan and open the take.
+fn map_and_take(
+    root: &std::path::Path,
+    tag: &str,
+    (room, seed, lens_spec): (RoomKind, u64, &str),
+    resolution: u32,
+    take: Take,
+) -> MappedTake {
+    let (camera, lens) = lens_spec.split_once('/').unwrap();
+    let session = |name: &str, take: Take| {
+        room_session(
+            root,
+            &format!("{tag}-{name}"),
+            room,
+            seed,
+            resolution,
+            lens_spec,
+            take,
+        )
+    };
+    let mapping = session("scan", SCAN);
+    let later = session("take", take);
+    let stream = LensStream::open(&mapping, camera, lens, None, None).unwrap();
+    let (map, summary) = build_map(&stream, &mut |_, _| {}).unwrap();
+    MappedTake {
+        alignment: Alignment::new(&map, &truth_poses(&mapping, camera, lens)),
+        map,
+        summary,
+        query: LensStream::open(&later, camera, lens, None, None).unwrap(),
+        truth: truth_poses(&later, camera, lens),
+    }
+}
+
 /// Map the scan of one room, seed and lens, and localize the revisit's stream of that lens in it.
 fn localize_revisit(
     root: &std::path::Path,
@@ -143,35 +187,18 @@ fn localize_revisit_with(
     resolution: u32,
     options: &LocalizerOptions,
 ) -> Revisit {
-    let (camera, lens) = lens_spec.split_once('/').unwrap();
     let tag = format!(
         "{}-{seed}-{}-{resolution}",
         room.name(),
         lens_spec.replace('/', "-")
     );
-    let mapping = room_session(
-        root,
-        &format!("{tag}-scan"),
-        room,
-        seed,
-        resolution,
-        lens_spec,
-        SCAN,
-    );
-    let query = room_session(
-        root,
-        &format!("{tag}-revisit"),
-        room,
-        seed,
-        resolution,
-        lens_spec,
-        REVISIT,
-    );
-    let stream = LensStream::open(&mapping, camera, lens, None, None).unwrap();
-    let (map, summary) = build_map(&stream, &mut |_, _| {}).unwrap();
-    let alignment = Alignment::new(&map, &truth_poses(&mapping, camera, lens));
-    let qstream = LensStream::open(&query, camera, lens, None, None).unwrap();
-    let qtruth = truth_poses(&query, camera, lens);
+    let MappedTake {
+        map,
+        summary,
+        alignment,
+        query: qstream,
+        truth: qtruth,
+    } = map_and_take(root, &tag, (room, seed, lens_spec), resolution, REVISIT);
     let (results, s) = localize_stream(&map, &qstream, options, &mut |_, _| {}).unwrap();
     assert_lost_frames_say_why(&results);
     let mut errors: Vec<f64> = results
@@ -384,33 +411,23 @@ fn a_part_of_the_room_the_map_never_saw_is_reported_lost() {
     /// here, the partition is closed), and then only correctly.
     const MAX_LOCALIZED: f64 = 0.0;
     let dir = tempfile::tempdir().unwrap();
-    let lens_spec = "left/front";
-    let (camera, lens) = lens_spec.split_once('/').unwrap();
-    let mapping = room_session(
-        dir.path(),
-        "divided-scan",
-        RoomKind::Divided,
-        1,
-        RESOLUTION,
-        lens_spec,
-        SCAN,
-    );
     let beyond = Take {
         scenario: Scenario::Beyond,
         ..REVISIT
     };
-    let query = room_session(
+    let MappedTake {
+        map,
+        alignment,
+        query: qstream,
+        truth: qtruth,
+        ..
+    } = map_and_take(
         dir.path(),
-        "divided-beyond",
-        RoomKind::Divided,
-        1,
+        "divided",
+        (RoomKind::Divided, 1, "left/front"),
         RESOLUTION,
-        lens_spec,
         beyond,
     );
-    let stream = LensStream::open(&mapping, camera, lens, None, None).unwrap();
-    let (map, _) = build_map(&stream, &mut |_, _| {}).unwrap();
-    let qstream = LensStream::open(&query, camera, lens, None, None).unwrap();
     let (results, s) =
         localize_stream(&map, &qstream, &LocalizerOptions::default(), &mut |_, _| {}).unwrap();
     eprintln!(
@@ -421,8 +438,6 @@ fn a_part_of_the_room_the_map_never_saw_is_reported_lost() {
     assert!(s.localized_fraction <= MAX_LOCALIZED, "{s:?}");
     // Nor when the wrist's other lens says where the wrist truly is: the map has nothing of
     // this view to match around that pose.
-    let alignment = Alignment::new(&map, &truth_poses(&mapping, camera, lens));
-    let qtruth = truth_poses(&query, camera, lens);
     let given = other_lens_poses(&qstream, &qtruth, &alignment, Vector3::zeros(), 0.0, |_| {
         true
     });
@@ -450,28 +465,18 @@ fn a_map_that_drifted_is_refused_and_serves_no_pose() {
     // against reversed mapping: the reversed run poses only 29 % of the keyframes) must refuse
     // it, and the query must be lost on every frame, saying why.
     let dir = tempfile::tempdir().unwrap();
-    let lens_spec = "left/rear";
-    let (camera, lens) = lens_spec.split_once('/').unwrap();
-    let mapping = room_session(
+    let MappedTake {
+        map,
+        summary,
+        query: qstream,
+        ..
+    } = map_and_take(
         dir.path(),
-        "workshop-scan",
-        RoomKind::Workshop,
-        2,
+        "workshop",
+        (RoomKind::Workshop, 2, "left/rear"),
         RESOLUTION,
-        lens_spec,
-        SCAN,
-    );
-    let query = room_session(
-        dir.path(),
-        "workshop-revisit",
-        RoomKind::Workshop,
-        2,
-        RESOLUTION,
-        lens_spec,
         REVISIT,
     );
-    let stream = LensStream::open(&mapping, camera, lens, None, None).unwrap();
-    let (map, summary) = build_map(&stream, &mut |_, _| {}).unwrap();
     eprintln!("workshop 2 map quality: {:?}", summary.quality);
     assert!(!summary.quality.trustworthy, "{:?}", summary.quality);
     // Refused by the coverage rule: the reversed run posed 29 % of the keyframes.
@@ -481,7 +486,6 @@ fn a_map_that_drifted_is_refused_and_serves_no_pose() {
         summary.quality
     );
     assert_eq!(map.quality.as_ref(), Some(&summary.quality));
-    let qstream = LensStream::open(&query, camera, lens, None, None).unwrap();
     let (results, s) =
         localize_stream(&map, &qstream, &LocalizerOptions::default(), &mut |_, _| {}).unwrap();
     assert_eq!(s.localized, 0, "{s:?}");
@@ -537,31 +541,19 @@ fn a_lens_that_cannot_relocalize_is_found_around_the_other_lens_pose() {
         ..LocalizerOptions::default()
     };
     let dir = tempfile::tempdir().unwrap();
-    let lens_spec = "left/front";
-    let (camera, lens) = lens_spec.split_once('/').unwrap();
-    let mapping = room_session(
+    let MappedTake {
+        map,
+        alignment,
+        query: qstream,
+        truth: qtruth,
+        ..
+    } = map_and_take(
         dir.path(),
-        "studio-scan",
-        RoomKind::Studio,
-        3,
+        "studio",
+        (RoomKind::Studio, 3, "left/front"),
         RESOLUTION,
-        lens_spec,
-        SCAN,
-    );
-    let query = room_session(
-        dir.path(),
-        "studio-revisit",
-        RoomKind::Studio,
-        3,
-        RESOLUTION,
-        lens_spec,
         REVISIT,
     );
-    let stream = LensStream::open(&mapping, camera, lens, None, None).unwrap();
-    let (map, _) = build_map(&stream, &mut |_, _| {}).unwrap();
-    let alignment = Alignment::new(&map, &truth_poses(&mapping, camera, lens));
-    let qstream = LensStream::open(&query, camera, lens, None, None).unwrap();
-    let qtruth = truth_poses(&query, camera, lens);
     let n = qstream.frames.len();
     let errors = |results: &[kiwi_backend::vision::localize::FrameLocalization]| -> Vec<f64> {
         let mut e: Vec<f64> = (results.iter())

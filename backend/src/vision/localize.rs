@@ -926,7 +926,22 @@ impl Localizer {
         if self.refused.is_some() {
             return Ok(None);
         }
-        let Some(e) = self.guided_estimate(frame, image, prior, Vec::new(), &mut None)? else {
+        let mut features = None;
+        self.guided_from(frame, t, image, prior, &mut features)
+    }
+
+    /// Guided matching over the whole frame around `cam_from_map`, judged by the tracking
+    /// rules; an accepted pose is output and carried as after tracking.
+    fn guided_from(
+        &mut self,
+        frame: u32,
+        t: f64,
+        image: &GrayImage,
+        cam_from_map: &Pose,
+        features: &mut Option<FrameFeatures>,
+    ) -> Result<Option<FrameLocalization>> {
+        let Some(e) = self.guided_estimate(frame, image, cam_from_map, Vec::new(), features)?
+        else {
             tracing::debug!("frame {frame}: guided matching around the given pose: no pose");
             return Ok(None);
         };
@@ -986,29 +1001,7 @@ impl Localizer {
             }
         };
         let mut features = Some(feats);
-        let Some(e) =
-            self.guided_estimate(frame, image, &first.cam_from_map, Vec::new(), &mut features)?
-        else {
-            tracing::debug!("frame {frame}: guided matching around the first pose: no pose");
-            return Ok(None);
-        };
-        if let Err(why) = self.accept(&e, self.options.min_inliers) {
-            tracing::debug!(
-                "frame {frame}: around the given pose: {} of {} inliers, {why}",
-                e.inliers.len(),
-                e.candidates
-            );
-            return Ok(None);
-        }
-        let pyramid = KltPyramid::new(image, &self.options.klt)?;
-        Ok(Some(self.finish(
-            frame,
-            t,
-            &e,
-            pyramid,
-            LocalizationStatus::Tracked,
-            usize::MAX,
-        )))
+        self.guided_from(frame, t, image, &first.cam_from_map, &mut features)
     }
 
     /// Forget the motion prior (the next frame relocalizes).
