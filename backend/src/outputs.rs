@@ -127,6 +127,15 @@ pub struct LocalizationRecord {
     pub localized: usize,
     /// Lost frames per reason (numbers replaced by `#`).
     pub lost_reasons: BTreeMap<String, usize>,
+    /// Of the localized frames, those found only around the pose the wrist's other lens
+    /// predicted (a front lens after the map episode; docs/vision.md).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub from_other_lens: usize,
+}
+
+/// Serde's skip test for a count that is usually zero.
+fn is_zero(n: &usize) -> bool {
+    *n == 0
 }
 
 /// Everything the outputs need of one wrist.

@@ -76,7 +76,7 @@ pub fn version(kind: &StageKind) -> &'static str {
         StageKind::Gripper { .. } => "gripper-1",
         StageKind::Head { .. } => "head-2",
         StageKind::Floor { .. } => "floor-2",
-        StageKind::Outputs { .. } => "outputs-3",
+        StageKind::Outputs { .. } => "outputs-4",
         StageKind::Export { .. } => "export-1",
         StageKind::Report => "report-1",
     }
@@ -1371,9 +1371,19 @@ pub fn write_file(path: &Path, bytes: &[u8]) -> Result<()> {
 /// Sub-folder of the outputs stage's folder that is published as the episode's `out/`.
 pub const PUBLISHED_DIR: &str = "out";
 
-fn localization_record(path: &Path) -> Result<crate::outputs::LocalizationRecord> {
-    let mut record = crate::outputs::LocalizationRecord::default();
-    for frame in crate::formats::tables::read_lens_frames(path)? {
+/// A lens's localization outcome from its stage folder (`poses.csv`, `summary.json`).
+fn localization_record(dir: &Path) -> Result<crate::outputs::LocalizationRecord> {
+    let summary: serde_json::Value =
+        read_json_file(&dir.join(SUMMARY_FILE), "localization summary")?;
+    let path = dir.join(POSES_FILE);
+    let mut record = crate::outputs::LocalizationRecord {
+        from_other_lens: summary
+            .get("from_other_lens")
+            .and_then(serde_json::Value::as_u64)
+            .map_or(0, |n| n as usize),
+        ..Default::default()
+    };
+    for frame in crate::formats::tables::read_lens_frames(&path)? {
         record.frames += 1;
         match frame.lost {
             Some(why) => {
@@ -1511,14 +1521,11 @@ fn run_outputs(env: &StageEnv<'_>, episode: &str) -> Result<()> {
     for (&side, w) in &ctx.wrists {
         let fused = fused_of(env, episode, side)?;
         let loc = |lens: Lens| {
-            localization_record(
-                &env.dep_dir(&StageKind::Localize {
-                    episode: episode.to_string(),
-                    side,
-                    lens,
-                })
-                .join(POSES_FILE),
-            )
+            localization_record(&env.dep_dir(&StageKind::Localize {
+                episode: episode.to_string(),
+                side,
+                lens,
+            }))
         };
         let observations = read_json_file(
             &env.dep_dir(&StageKind::Observations {

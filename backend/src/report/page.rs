@@ -514,6 +514,13 @@ fn quality_section(html: &mut String, ep: &EpisodeReport) {
         }
         let loc = |l: &crate::outputs::LocalizationRecord| {
             let mut s = format!("{} / {}", l.localized, l.frames);
+            if l.from_other_lens > 0 {
+                let _ = write!(
+                    s,
+                    "<br>{} found around the other lens's pose",
+                    l.from_other_lens
+                );
+            }
             for (reason, n) in &l.lost_reasons {
                 let _ = write!(s, "<br>lost {n}: {}", esc(reason));
             }

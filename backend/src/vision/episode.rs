@@ -582,6 +582,9 @@ const OTHER_LENS_RETRY_FRAMES: usize = 3;
 /// recovery and the placement over several metres), seen at the front lens's 0.4-1 m, is 2-6°.
 pub const OTHER_LENS_RADIUS_RAD: f64 = 0.1;
 
+/// Added to the reason of a lost frame that was tried around the other lens's pose in vain.
+const OTHER_LENS_NOT_FOUND: &str = "; around the other lens's pose: not found either";
+
 /// Localize lost frames around the pose the wrist's other lens gives (`other_lens`, per frame
 /// `map_from_cam`): a fresh localizer matches the frame around that pose
 /// ([`Localizer::process_around`] within [`OTHER_LENS_RADIUS_RAD`], judged by the tracking
@@ -622,6 +625,7 @@ fn from_other_lens(
         attempts += 1;
         seconds += started.elapsed().as_secs_f64();
         let Some(mut first) = seed else {
+            results[i].reason.push_str(OTHER_LENS_NOT_FOUND);
             i += OTHER_LENS_RETRY_FRAMES;
             continue;
         };
