@@ -45,7 +45,9 @@ use common::reloc::{Alignment, Take, pose_at, room_session, truth_poses};
 use kiwi_backend::vision::episode::{
     LensStream, build_map, localize_stream, localize_stream_with_other_lens,
 };
-use kiwi_backend::vision::localize::{LocalizationStatus, LocalizerOptions, is_refused_as_copy};
+use kiwi_backend::vision::localize::{
+    FrameLocalization, LocalizationStatus, LocalizerOptions, is_refused_as_copy,
+};
 use kiwi_backend::vision::runs::is_withdrawn;
 use kiwi_core::geometry::Pose;
 use kiwi_fixtures::scenario::Scenario;
@@ -110,7 +112,7 @@ const KITCHENS: [(RoomKind, u64, &str); 4] = [
 struct Revisit {
     tag: String,
     map: kiwi_backend::vision::episode::MapSummary,
-    results: Vec<kiwi_backend::vision::localize::FrameLocalization>,
+    results: Vec<FrameLocalization>,
     summary: kiwi_backend::vision::episode::LocalizeSummary,
     /// Position errors of the posed frames (m), sorted.
     errors: Vec<f64>,
@@ -160,6 +162,27 @@ fn map_and_take(
     }
 }
 
+/// Position errors (m) of the posed frames of `results` against `truth`, through the map's
+/// `alignment`, sorted.
+fn position_errors(
+    results: &[FrameLocalization],
+    alignment: &Alignment,
+    truth: &[(f64, Pose)],
+) -> Vec<f64> {
+    let mut errors: Vec<f64> = results
+        .iter()
+        .filter_map(|r| {
+            r.map_from_cam.map(|p| {
+                (alignment.world_from_cam(&p).translation.vector
+                    - pose_at(truth, r.t).translation.vector)
+                    .norm()
+            })
+        })
+        .collect();
+    errors.sort_by(f64::total_cmp);
+    errors
+}
+
 /// Map the scan of one room, seed and lens, and localize the revisit's stream of that lens in it.
 fn localize_revisit(
     root: &std::path::Path,
@@ -201,17 +224,7 @@ fn localize_revisit_with(
     } = map_and_take(root, &tag, (room, seed, lens_spec), resolution, REVISIT);
     let (results, s) = localize_stream(&map, &qstream, options, &mut |_, _| {}).unwrap();
     assert_lost_frames_say_why(&results);
-    let mut errors: Vec<f64> = results
-        .iter()
-        .filter_map(|r| {
-            r.map_from_cam.map(|p| {
-                (alignment.world_from_cam(&p).translation.vector
-                    - pose_at(&qtruth, r.t).translation.vector)
-                    .norm()
-            })
-        })
-        .collect();
-    errors.sort_by(f64::total_cmp);
+    let errors = position_errors(&results, &alignment, &qtruth);
     Revisit {
         tag,
         map: summary,
@@ -555,19 +568,7 @@ fn a_lens_that_cannot_relocalize_is_found_around_the_other_lens_pose() {
         REVISIT,
     );
     let n = qstream.frames.len();
-    let errors = |results: &[kiwi_backend::vision::localize::FrameLocalization]| -> Vec<f64> {
-        let mut e: Vec<f64> = (results.iter())
-            .filter_map(|r| {
-                r.map_from_cam.map(|p| {
-                    (alignment.world_from_cam(&p).translation.vector
-                        - pose_at(&qtruth, r.t).translation.vector)
-                        .norm()
-                })
-            })
-            .collect();
-        e.sort_by(f64::total_cmp);
-        e
-    };
+    let errors = |results: &[FrameLocalization]| position_errors(results, &alignment, &qtruth);
 
     let (alone, s) = localize_stream(&map, &qstream, &options, &mut |_, _| {}).unwrap();
     assert_eq!(s.localized, 0, "relocalization was meant to be off: {s:?}");

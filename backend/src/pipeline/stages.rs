@@ -770,19 +770,19 @@ fn run_localize(env: &StageEnv<'_>, episode: &str, side: Side, lens: Lens) -> Re
     });
     let map = VisualMap::load(&map_dir.join(MAP_FILE))?;
     let stream = open_stream(env.ctx, episode, side, lens)?;
-    let other_lens = if lens == Lens::Front && episode != env.ctx.session.map_episode {
-        let w = wrist(env.ctx, side)?;
-        let rear = localizations_of(env, episode, side, Lens::Rear)?;
-        let times: Vec<f64> = stream.frames.iter().map(|f| f.t).collect();
-        front_poses_from_rear(
-            &times,
-            &rear,
-            &scene_reference(env.ctx, side)?,
-            &w.front,
-            &w.rear,
-        )
+    let reference = if lens == Lens::Front && episode != env.ctx.session.map_episode {
+        Some(scene_reference(env.ctx, side)?)
     } else {
-        Vec::new()
+        None
+    };
+    let other_lens = match &reference {
+        Some(reference) => {
+            let w = wrist(env.ctx, side)?;
+            let rear = localizations_of(env, episode, side, Lens::Rear)?;
+            let times: Vec<f64> = stream.frames.iter().map(|f| f.t).collect();
+            front_poses_from_rear(&times, &rear, reference, &w.front, &w.rear)
+        }
+        None => Vec::new(),
     };
     let (results, summary) = localize_stream_with_other_lens(
         &map,
@@ -791,8 +791,10 @@ fn run_localize(env: &StageEnv<'_>, episode: &str, side: Side, lens: Lens) -> Re
         &other_lens,
         &mut |done, total| (env.progress)(done, total),
     )?;
-    if let Some(agreement) = other_lens_agreement(&results, &other_lens) {
-        let scale = scene_reference(env.ctx, side)?.front_metric.scale;
+    if let (Some(reference), Some(agreement)) =
+        (&reference, other_lens_agreement(&results, &other_lens))
+    {
+        let scale = reference.front_metric.scale;
         tracing::info!(
             "{episode}/{}: the rear lens's prediction of the front pose is {:.1} mm and {:.2}° \
              off the front's own pose (median over {} frames; 95th percentile {:.1} mm)",
