@@ -191,6 +191,55 @@ fn confirmed_keyframes(fwd: &[Vector3<f64>], bwd: &[Vector3<f64>]) -> Vec<bool> 
 }
 
 /// Median keyframe-to-landmark distance of a reconstruction (its units); `None` without any.
+/// The disagreement of the two runs' keyframe centres, over `depth`.
+#[derive(Debug, Clone, PartialEq)]
+struct Judged {
+    /// Over every keyframe both runs posed.
+    whole: Option<f64>,
+    /// Over the keyframes the map is judged on (all, or all but `unconfirmed`).
+    confirmed: Option<f64>,
+    /// Indices (into the centres) left out of `confirmed`.
+    unconfirmed: Vec<usize>,
+}
+
+/// Judge the forward and reversed centres `fwd` and `bwd` (same keyframes, same order) of a
+/// map of `keyframes` keyframes: without the keyframes the reversed run does not confirm when
+/// they are at most [`MAX_UNCONFIRMED_SHARE`] of the map, else on all of them.
+fn judge(
+    fwd: &[Vector3<f64>],
+    bwd: &[Vector3<f64>],
+    keyframes: usize,
+    depth: Option<f64>,
+) -> Judged {
+    let measure = |b: &[Vector3<f64>], f: &[Vector3<f64>]| {
+        align_and_measure(b, f)
+            .zip(depth)
+            .map(|((_, err), depth)| err.rmse / depth)
+    };
+    let whole = measure(bwd, fwd);
+    let confirmed = confirmed_keyframes(fwd, bwd);
+    let unconfirmed: Vec<usize> = (0..confirmed.len()).filter(|&i| !confirmed[i]).collect();
+    if unconfirmed.is_empty() || unconfirmed.len() as f64 > MAX_UNCONFIRMED_SHARE * keyframes as f64
+    {
+        return Judged {
+            whole,
+            confirmed: whole,
+            unconfirmed: Vec::new(),
+        };
+    }
+    let keep = |v: &[Vector3<f64>]| -> Vec<Vector3<f64>> {
+        (v.iter().zip(&confirmed))
+            .filter(|(_, c)| **c)
+            .map(|(x, _)| *x)
+            .collect()
+    };
+    Judged {
+        whole,
+        confirmed: measure(&keep(bwd), &keep(fwd)),
+        unconfirmed,
+    }
+}
+
 fn median_depth(recon: &Reconstruction) -> Option<f64> {
     let mut d: Vec<f64> = Vec::new();
     for kf in &recon.keyframes {
@@ -282,33 +331,11 @@ pub fn assess(
         .filter_map(|f| back_poses.get(f).map(centre))
         .collect();
     let reversed_coverage = fwd.len() as f64 / recon.keyframes.len().max(1) as f64;
-    let depth = median_depth(recon);
-    let whole_disagreement = align_and_measure(&bwd, &fwd)
-        .zip(depth)
-        .map(|((_, err), depth)| err.rmse / depth);
-    let confirmed = confirmed_keyframes(&fwd, &bwd);
-    let unconfirmed = confirmed.iter().filter(|&&c| !c).count();
-    let (direction_disagreement, unconfirmed_keyframes) = if unconfirmed > 0
-        && (unconfirmed as f64) <= MAX_UNCONFIRMED_SHARE * recon.keyframes.len() as f64
-    {
-        let keep = |v: &[Vector3<f64>]| -> Vec<Vector3<f64>> {
-            v.iter()
-                .zip(&confirmed)
-                .filter(|(_, c)| **c)
-                .map(|(x, _)| *x)
-                .collect()
-        };
-        let d = align_and_measure(&keep(&bwd), &keep(&fwd))
-            .zip(depth)
-            .map(|((_, err), depth)| err.rmse / depth);
-        let frames = (frames_both.iter().zip(&confirmed))
-            .filter(|(_, c)| !**c)
-            .map(|(f, _)| *f)
-            .collect();
-        (d, frames)
-    } else {
-        (whole_disagreement, Vec::new())
-    };
+    let judged = judge(&fwd, &bwd, recon.keyframes.len(), median_depth(recon));
+    let (whole_disagreement, direction_disagreement) = (judged.whole, judged.confirmed);
+    let unconfirmed_keyframes: Vec<u32> = (judged.unconfirmed.iter())
+        .filter_map(|&i| frames_both.get(i).copied())
+        .collect();
     if !unconfirmed_keyframes.is_empty() {
         tracing::warn!(
             "the reversed mapping run does not confirm {} of {} keyframes (frames {:?}): the \
@@ -395,5 +422,51 @@ mod tests {
             .map(|(i, p)| p * (1.0 + 0.002 * i as f64) + wobble(i))
             .collect();
         assert!(confirmed_keyframes(&fwd, &drifted).iter().all(|&k| k));
+    }
+
+    /// The path with a 1 cm wobble and the stretch `broken` 0.23 units off.
+    fn broken_over(broken: std::ops::Range<usize>) -> (Vec<Vector3<f64>>, Vec<Vector3<f64>>) {
+        let fwd = path(100);
+        let bwd = (fwd.iter().enumerate())
+            .map(|(i, p)| {
+                let wobble = Vector3::new(
+                    0.01 * (i as f64 * 1.7).sin(),
+                    0.01 * (i as f64 * 0.9).cos(),
+                    0.0,
+                );
+                let jump = if broken.contains(&i) {
+                    Vector3::new(0.2, -0.1, 0.05)
+                } else {
+                    Vector3::zeros()
+                };
+                p + wobble + jump
+            })
+            .collect();
+        (fwd, bwd)
+    }
+
+    /// A map is judged without a break of at most a tenth of its keyframes, and on all of them
+    /// when the break is longer: a run that disagrees over more is not one stretch gone wrong.
+    #[test]
+    fn only_a_tenth_of_the_keyframes_may_be_left_out() {
+        let depth = Some(2.0);
+        let (fwd, bwd) = broken_over(60..67);
+        let short = judge(&fwd, &bwd, 100, depth);
+        assert_eq!(short.unconfirmed, (60..67).collect::<Vec<_>>());
+        let (whole, confirmed) = (short.whole.unwrap(), short.confirmed.unwrap());
+        assert!(confirmed < MAX_DIRECTION_DISAGREEMENT, "{confirmed}");
+        assert!(whole > MAX_DIRECTION_DISAGREEMENT, "{whole}");
+
+        // The same break is at most a tenth of a map of 70 keyframes, not of one of 69.
+        assert_eq!(judge(&fwd, &bwd, 70, depth).unconfirmed.len(), 7);
+        let capped = judge(&fwd, &bwd, 69, depth);
+        assert!(capped.unconfirmed.is_empty());
+        assert_eq!(capped.confirmed, capped.whole);
+
+        let (fwd, bwd) = broken_over(50..65);
+        let long = judge(&fwd, &bwd, 100, depth);
+        assert!(long.unconfirmed.is_empty());
+        assert_eq!(long.confirmed, long.whole);
+        assert!(long.whole.unwrap() > MAX_DIRECTION_DISAGREEMENT);
     }
 }
