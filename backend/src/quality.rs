@@ -184,6 +184,29 @@ pub fn reason_class(reason: &str) -> String {
     out
 }
 
+/// `<name> has a pose at <n> of <m> frames`, and when frames were lost, how many were lost for
+/// the commonest reason and that reason (up to its first `;`).
+pub fn describe_outcome(name: &str, record: &crate::outputs::LocalizationRecord) -> String {
+    let mut text = format!(
+        "{name} has a pose at {} of {} frames",
+        record.localized, record.frames
+    );
+    // The first of the commonest, so that the text does not depend on map order among equals.
+    let commonest =
+        (record.lost_reasons.iter()).fold(None, |best: Option<(&String, usize)>, (why, &n)| {
+            match best {
+                Some((_, m)) if m >= n => best,
+                _ => Some((why, n)),
+            }
+        });
+    if let Some((why, n)) = commonest {
+        let lost = record.frames.saturating_sub(record.localized);
+        let short = why.split(';').next().unwrap_or(why).trim();
+        text += &format!(" ({lost} lost; {n} of them: \"{short}\")");
+    }
+    text
+}
+
 /// Length (s) of the longest run of consecutive unsupported frames, measured from the last
 /// supported frame before the run to the first one after it (or the stream's ends).
 pub fn longest_unsupported_run(times: &[f64], supported: &[bool]) -> f64 {
@@ -220,6 +243,36 @@ mod tests {
         assert_eq!(
             reason_class("keyframe 110: no pose with 45 inliers"),
             "keyframe #: no pose with # inliers"
+        );
+    }
+
+    /// A stage that had too little to work with says how much of the lens had a pose and why
+    /// the rest was lost.
+    #[test]
+    fn a_lens_outcome_names_the_commonest_reason() {
+        let mut record = crate::outputs::LocalizationRecord {
+            frames: 689,
+            localized: 0,
+            ..Default::default()
+        };
+        assert_eq!(
+            describe_outcome("the right rear lens", &record),
+            "the right rear lens has a pose at 0 of 689 frames"
+        );
+        record.lost_reasons.insert(
+            "tracking: position poorly constrained: σ #% > #%".into(),
+            26,
+        );
+        record.lost_reasons.insert(
+            "withdrawn: the run that began at frame # does not join the stream's other poses; \
+             frames # and # are # map depths apart"
+                .into(),
+            663,
+        );
+        assert_eq!(
+            describe_outcome("the right rear lens", &record),
+            "the right rear lens has a pose at 0 of 689 frames (689 lost; 663 of them: \
+             \"withdrawn: the run that began at frame # does not join the stream's other poses\")"
         );
     }
 

@@ -883,7 +883,11 @@ fn run_metric(env: &StageEnv<'_>, map: MapName) -> Result<()> {
         std::time::Instant::now(),
     )
     .map_err(|e| {
-        BackendError::Estimation(format!("metric recovery of the {} map: {e}", map.label()))
+        BackendError::Estimation(format!(
+            "metric recovery of the {} map: {e}; {}",
+            map.label(),
+            lens_outcome(env, &map_ep, side, lens)
+        ))
     })?;
     file.seconds = None;
     write_json(&env.out.join("metric.json"), &file)
@@ -914,11 +918,28 @@ fn run_placement(env: &StageEnv<'_>, side: Side) -> Result<()> {
     )
     .map_err(|e| {
         BackendError::Estimation(format!(
-            "placement of the {} front map: {e}",
-            side.camera_name()
+            "placement of the {} front map: {e}; {}; {}",
+            side.camera_name(),
+            lens_outcome(env, &map_ep, side, Lens::Front),
+            lens_outcome(env, &map_ep, side, Lens::Rear)
         ))
     })?;
     write_json(&env.out.join(PLACEMENT_FILE), &file)
+}
+
+/// What a lens's localization gave, for an error that must say why a stage had too little to
+/// work with: how many frames have a pose, and the commonest reason the others were lost.
+fn lens_outcome(env: &StageEnv<'_>, episode: &str, side: Side, lens: Lens) -> String {
+    let dir = env.dep_dir(&StageKind::Localize {
+        episode: episode.to_string(),
+        side,
+        lens,
+    });
+    let name = format!("the {} {} lens", side.camera_name(), lens.name());
+    match localization_record(&dir) {
+        Ok(record) => crate::quality::describe_outcome(&name, &record),
+        Err(e) => format!("{name}'s localizations could not be read ({e})"),
+    }
 }
 
 /// Time from a frame's timestamp (its first row) to its exposure centre (s): half the rolling
