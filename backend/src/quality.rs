@@ -191,14 +191,8 @@ pub fn describe_outcome(name: &str, record: &crate::outputs::LocalizationRecord)
         "{name} has a pose at {} of {} frames",
         record.localized, record.frames
     );
-    // The first of the commonest, so that the text does not depend on map order among equals.
-    let commonest =
-        (record.lost_reasons.iter()).fold(None, |best: Option<(&String, usize)>, (why, &n)| {
-            match best {
-                Some((_, m)) if m >= n => best,
-                _ => Some((why, n)),
-            }
-        });
+    // `max_by_key` keeps the last of equals: reversed, the first reason in order among them.
+    let commonest = record.lost_reasons.iter().rev().max_by_key(|(_, n)| **n);
     if let Some((why, n)) = commonest {
         let lost = record.frames.saturating_sub(record.localized);
         let short = why.split(';').next().unwrap_or(why).trim();

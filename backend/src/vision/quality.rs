@@ -190,7 +190,6 @@ fn confirmed_keyframes(fwd: &[Vector3<f64>], bwd: &[Vector3<f64>]) -> Vec<bool> 
     keep
 }
 
-/// Median keyframe-to-landmark distance of a reconstruction (its units); `None` without any.
 /// The disagreement of the two runs' keyframe centres, over `depth`.
 #[derive(Debug, Clone, PartialEq)]
 struct Judged {
@@ -240,6 +239,7 @@ fn judge(
     }
 }
 
+/// Median keyframe-to-landmark distance of a reconstruction (its units); `None` without any.
 fn median_depth(recon: &Reconstruction) -> Option<f64> {
     let mut d: Vec<f64> = Vec::new();
     for kf in &recon.keyframes {
@@ -391,22 +391,22 @@ mod tests {
             .collect()
     }
 
-    /// A run that breaks over 7 of 100 keyframes (the reversed run off there by 0.23 units, about
-    /// 20 times its 1 cm wobble elsewhere) leaves those 7 unconfirmed; smooth drift (a scale that creeps
-    /// along the path) leaves none, however large.
-    #[test]
-    fn a_break_of_one_stretch_is_left_out_and_drift_is_not() {
+    /// A 1 cm wobble along the path, different at every keyframe.
+    fn wobble(i: usize) -> Vector3<f64> {
+        Vector3::new(
+            0.01 * (i as f64 * 1.7).sin(),
+            0.01 * (i as f64 * 0.9).cos(),
+            0.0,
+        )
+    }
+
+    /// The path of 100 keyframes and a second run of it with the wobble and the stretch
+    /// `broken` 0.23 units off.
+    fn broken_over(broken: std::ops::Range<usize>) -> (Vec<Vector3<f64>>, Vec<Vector3<f64>>) {
         let fwd = path(100);
-        let wobble = |i: usize| {
-            Vector3::new(
-                0.01 * (i as f64 * 1.7).sin(),
-                0.01 * (i as f64 * 0.9).cos(),
-                0.0,
-            )
-        };
-        let broken: Vec<Vector3<f64>> = (fwd.iter().enumerate())
+        let bwd = (fwd.iter().enumerate())
             .map(|(i, p)| {
-                let jump = if (60..67).contains(&i) {
+                let jump = if broken.contains(&i) {
                     Vector3::new(0.2, -0.1, 0.05)
                 } else {
                     Vector3::zeros()
@@ -414,6 +414,15 @@ mod tests {
                 p + wobble(i) + jump
             })
             .collect();
+        (fwd, bwd)
+    }
+
+    /// A run that breaks over 7 of 100 keyframes (the reversed run off there by 0.23 units, about
+    /// 20 times its 1 cm wobble elsewhere) leaves those 7 unconfirmed; smooth drift (a scale that
+    /// creeps along the path) leaves none, however large.
+    #[test]
+    fn a_break_of_one_stretch_is_left_out_and_drift_is_not() {
+        let (fwd, broken) = broken_over(60..67);
         let keep = confirmed_keyframes(&fwd, &broken);
         let left_out: Vec<usize> = (0..100).filter(|&i| !keep[i]).collect();
         assert_eq!(left_out, (60..67).collect::<Vec<_>>());
@@ -422,27 +431,6 @@ mod tests {
             .map(|(i, p)| p * (1.0 + 0.002 * i as f64) + wobble(i))
             .collect();
         assert!(confirmed_keyframes(&fwd, &drifted).iter().all(|&k| k));
-    }
-
-    /// The path with a 1 cm wobble and the stretch `broken` 0.23 units off.
-    fn broken_over(broken: std::ops::Range<usize>) -> (Vec<Vector3<f64>>, Vec<Vector3<f64>>) {
-        let fwd = path(100);
-        let bwd = (fwd.iter().enumerate())
-            .map(|(i, p)| {
-                let wobble = Vector3::new(
-                    0.01 * (i as f64 * 1.7).sin(),
-                    0.01 * (i as f64 * 0.9).cos(),
-                    0.0,
-                );
-                let jump = if broken.contains(&i) {
-                    Vector3::new(0.2, -0.1, 0.05)
-                } else {
-                    Vector3::zeros()
-                };
-                p + wobble + jump
-            })
-            .collect();
-        (fwd, bwd)
     }
 
     /// A map is judged without a break of at most a tenth of its keyframes, and on all of them
