@@ -176,6 +176,41 @@ pub fn front_poses_from_rear(
         .collect()
 }
 
+/// A wrist's rear lens placed through its front lens seen in another wrist's front map: its
+/// `map_from_cam` in the (unscaled) rear map at each of `rear_times` (camera clock, s), from the
+/// front frame nearest on the IMU clock (within [`PAIR_TOLERANCE_S`]) localized in the map
+/// wrist's front map (`front_in_other_map`, `map_from_cam` of this wrist's front lens), carried
+/// to the scene by that map's metric recovery and placement (`other`, the map wrist's
+/// reference) and to the rear lens by this wrist's calibration; `None` where the front has no
+/// pose. Eq. 3 with the other wrist's `G_a`: the scene frame is one for both wrists.
+pub fn rear_poses_from_other_front_map(
+    rear_times: &[f64],
+    front_in_other_map: &[Localization],
+    other: &SceneReference,
+    front_calibration: &LensImuCalibration,
+    rear_calibration: &LensImuCalibration,
+) -> Vec<Option<Pose>> {
+    let front_obs = lens_observations(front_in_other_map, |r| PoseObservation {
+        t: r.t + front_calibration.time_shift_s,
+        source: Source::Front,
+        scene_from_imu: other.scene_from_front_map
+            * apply(&other.front_metric, &r.map_from_cam)
+            * front_calibration.cam_from_imu,
+    });
+    let rear_map_from_scene = other.rear_metric.inverse();
+    let imu_from_rear_cam = rear_calibration.cam_from_imu.inverse();
+    let mut j = 0usize;
+    rear_times
+        .iter()
+        .map(|&t_cam| {
+            let t = t_cam + rear_calibration.time_shift_s;
+            let nearest = nearest_at(&front_obs, &mut j, t)?;
+            let scene_from_cam = nearest.observation.scene_from_imu * imu_from_rear_cam;
+            Some(apply(&rear_map_from_scene, &scene_from_cam))
+        })
+        .collect()
+}
+
 /// The observation of `obs` (sorted by time) nearest `t` within [`PAIR_TOLERANCE_S`]; `j` is
 /// the search's start, advanced past everything too early (queries must come in time order).
 fn nearest_at<'a>(obs: &'a [RunObservation], j: &mut usize, t: f64) -> Option<&'a RunObservation> {
@@ -369,6 +404,79 @@ mod tests {
     fn observe(front: &[Localization], rear: &[Localization]) -> ObservationCounts {
         let c = calibration();
         body_observations(front, rear, &identity_reference(), &c, &c, 0.0).1
+    }
+
+    /// The rear lens placed through the front lens seen in the other wrist's front map lands
+    /// where the rear lens truly is in the rear map, through every frame change (scaled maps,
+    /// a placement, both lenses' calibrations and time shifts); a lost front frame gives none.
+    #[test]
+    fn the_other_wrists_front_map_places_the_rear_lens() {
+        use nalgebra::{Translation3, UnitQuaternion};
+        let rot = |x: f64, y: f64, z: f64| UnitQuaternion::from_euler_angles(x, y, z);
+        let other = SceneReference {
+            front_metric: Sim3 {
+                scale: 0.3,
+                rotation: rot(0.1, -0.2, 0.4),
+                translation: Vector3::new(0.5, -1.0, 0.2),
+            },
+            rear_metric: Sim3 {
+                scale: 2.5,
+                rotation: rot(-0.3, 0.05, 1.1),
+                translation: Vector3::new(-0.2, 0.3, 1.4),
+            },
+            scene_from_front_map: Pose::from_parts(
+                Translation3::new(0.1, 0.2, -0.3),
+                rot(0.02, 0.3, -0.5),
+            ),
+        };
+        let front_cal = LensImuCalibration {
+            cam_from_imu: Pose::from_parts(Translation3::new(0.01, 0.02, 0.03), rot(0.0, 1.5, 0.1)),
+            time_shift_s: 0.0004,
+            imu_noise: None,
+        };
+        let rear_cal = LensImuCalibration {
+            cam_from_imu: Pose::from_parts(
+                Translation3::new(-0.01, 0.0, -0.03),
+                rot(0.0, -1.6, 0.0),
+            ),
+            time_shift_s: -0.0003,
+            imu_noise: None,
+        };
+        let scene_from_imu = |t: f64| {
+            Pose::from_parts(
+                Translation3::new(0.5 * t, 0.2 * t.sin(), 1.0),
+                rot(0.3 * t, 0.1, -0.2 * t),
+            )
+        };
+        let times: Vec<f64> = (0..30).map(|i| i as f64 / RATE_HZ).collect();
+        let front: Vec<Localization> = times
+            .iter()
+            .enumerate()
+            .map(|(i, &t)| {
+                let moment = t + front_cal.time_shift_s;
+                let metric_from_cam = other.scene_from_front_map.inverse()
+                    * scene_from_imu(moment)
+                    * front_cal.cam_from_imu.inverse();
+                Localization {
+                    t,
+                    valid: i != 7,
+                    map_from_cam: apply(&other.front_metric.inverse(), &metric_from_cam),
+                }
+            })
+            .collect();
+        // The rear frames are exposed with the front ones (their lens shifts differ by 0.7 ms).
+        let rear = rear_poses_from_other_front_map(&times, &front, &other, &front_cal, &rear_cal);
+        assert!(rear[7].is_none());
+        for (i, (&t, pose)) in times.iter().zip(&rear).enumerate().filter(|(i, _)| *i != 7) {
+            let moment = t + front_cal.time_shift_s;
+            let truth = apply(
+                &other.rear_metric.inverse(),
+                &(scene_from_imu(moment) * rear_cal.cam_from_imu.inverse()),
+            );
+            let d = truth.inverse() * pose.unwrap_or_else(Pose::identity);
+            assert!(d.translation.vector.norm() < 1e-9, "frame {i}: {d:?}");
+            assert!(d.rotation.angle() < 1e-9, "frame {i}: {d:?}");
+        }
     }
 
     /// Two lenses that agree (within a centimetre of noise) keep every observation.

@@ -4,7 +4,10 @@
 //! `map-rear` (the shared scene map, from one wrist's rear stream) and `map-front-<wrist>`,
 //! `tool-<wrist>` (the tool's dot plane from its body tag), then — from that episode's own
 //! localizations — `metric-rear` / `metric-front-<wrist>` (scale, gravity, biases) and
-//! `placement-<wrist>` (`G_a`, eq. 2).
+//! `placement-<wrist>` (`G_a`, eq. 2). The mapping episode's rear stream of the wrist that did not
+//! build the rear map also reads, optionally, the map wrist's front map, metric recoveries and
+//! placement: the witness that decides between its runs where they do not join
+//! ([`rear_witness_deps`]).
 //!
 //! Per episode, once the maps are frozen: `sync` → `localize-<wrist>-<lens>` (four streams, no map
 //! updates; after the map episode a front stream also starts from the poses its wrist's rear
@@ -173,6 +176,32 @@ pub struct StageNode {
     pub kind: StageKind,
     /// Stages whose outputs it reads.
     pub deps: Vec<StageId>,
+    /// Those of `deps` it can do without: when one fails the stage still runs, without what
+    /// that stage would have given it.
+    pub optional: Vec<StageId>,
+}
+
+/// The stages whose outputs witness where the rear lens of `side` stands in the mapping
+/// episode, when that wrist did not build the rear map: the map wrist's front map, its metric
+/// recovery, the rear map's and that wrist's placement, through which this wrist's front lens,
+/// seen in that front map, places its rear lens in the scene
+/// ([`crate::vision::episode::Witness`]). Empty for the map wrist, whose rear stream built the
+/// map it is localized in.
+pub fn rear_witness_deps(ctx: &SessionContext, side: Side) -> Vec<StageId> {
+    let map_side = ctx.map_side();
+    if side == map_side || !ctx.wrists.contains_key(&map_side) {
+        return Vec::new();
+    }
+    vec![
+        id_of(&StageKind::Map {
+            map: MapName::Front(map_side),
+        }),
+        id_of(&StageKind::Metric {
+            map: MapName::Front(map_side),
+        }),
+        id_of(&StageKind::Metric { map: MapName::Rear }),
+        id_of(&StageKind::Placement { side: map_side }),
+    ]
 }
 
 /// The id of a stage kind.
@@ -238,13 +267,30 @@ pub const AFTER_EPISODE_FAMILIES: [&str; 2] = ["export", "report"];
 /// dependencies.
 pub fn build(ctx: &SessionContext, episodes: &[String]) -> Vec<StageNode> {
     let mut nodes: Vec<StageNode> = Vec::new();
+    let map_ep = ctx.session.map_episode.clone();
+    // The other wrist's rear lens in the mapping episode is placed by a witness where its runs
+    // conflict; it runs without the witness when the witness's stages fail.
+    let optional_of = |kind: &StageKind| match kind {
+        StageKind::Localize {
+            episode,
+            side,
+            lens: Lens::Rear,
+        } if *episode == map_ep => rear_witness_deps(ctx, *side),
+        _ => Vec::new(),
+    };
     let mut push = |kind: StageKind, deps: Vec<StageId>| {
         let id = id_of(&kind);
         if !nodes.iter().any(|n| n.id == id) {
-            nodes.push(StageNode { id, kind, deps });
+            let optional = optional_of(&kind);
+            let deps = deps.into_iter().chain(optional.iter().cloned()).collect();
+            nodes.push(StageNode {
+                id,
+                kind,
+                deps,
+                optional,
+            });
         }
     };
-    let map_ep = ctx.session.map_episode.clone();
     let sides: Vec<Side> = ctx.wrists.keys().copied().collect();
     let map_side = ctx.map_side();
     let mut maps = vec![MapName::Rear];
@@ -467,6 +513,7 @@ pub fn build(ctx: &SessionContext, episodes: &[String]) -> Vec<StageNode> {
             id: id_of(&StageKind::Report),
             kind: StageKind::Report,
             deps,
+            optional: Vec::new(),
         });
     }
     order(nodes)

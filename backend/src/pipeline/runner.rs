@@ -466,10 +466,9 @@ fn execute(
             publish_failure(ctx, node, reason);
         }
     };
-    if let Some((dep, Decided::Broken(reason))) = deps
-        .iter()
-        .find(|(_, d)| matches!(d, Decided::Broken(_)) && !tolerates_broken)
-    {
+    if let Some((dep, Decided::Broken(reason))) = deps.iter().find(|(id, d)| {
+        matches!(d, Decided::Broken(_)) && !tolerates_broken && !node.optional.contains(id)
+    }) {
         let reason = if reason.starts_with("needs ") {
             reason.clone()
         } else {
@@ -515,10 +514,15 @@ fn execute(
         let work = StageWork::begin(&ctx.root, &node.id)?;
         let id = node.id.clone();
         let report = |done: usize, total: usize| progress.update(&id, done, total);
+        let unavailable: Vec<StageId> = (deps.iter())
+            .filter(|(_, d)| matches!(d, Decided::Broken(_)))
+            .map(|(id, _)| id.clone())
+            .collect();
         let env = StageEnv {
             ctx,
             out: work.dir(),
             progress: &report,
+            unavailable: &unavailable,
         };
         let body = pool.install(|| run_stage(&env, &node.kind));
         let seconds = started.elapsed().as_secs_f64();

@@ -8,6 +8,7 @@
 
 use std::path::{Path, PathBuf};
 
+use kiwi_core::geometry::Pose;
 use kiwi_core::imu::ImuSeries;
 use kiwi_core::io::{sha256_bytes, write_atomic};
 use kiwi_core::layout::{EpisodeLayout, Side};
@@ -23,14 +24,18 @@ use crate::formats::results::{
     read_metric, read_placement, write_json,
 };
 use crate::formats::tables::{
-    read_fused, read_localizations, read_observations, write_fused, write_observations,
+    Localization, read_fused, read_localizations, read_observations, write_fused,
+    write_observations,
 };
 use crate::fusion::{FusionConfig, fuse, visual_sigma_from_disagreement};
 use crate::metric::MetricConfig;
-use crate::observations::{SceneReference, body_observations, front_poses_from_rear};
+use crate::observations::{
+    SceneReference, body_observations, front_poses_from_rear, rear_poses_from_other_front_map,
+};
 use crate::placement::PlacementConfig;
 use crate::vision::episode::{
-    LensStream, build_map_with, localize_stream_with_other_lens, write_poses_csv,
+    LensStream, Witness, build_map_with, localize_stream, localize_stream_with_witness,
+    write_poses_csv,
 };
 use crate::vision::localize::LocalizerOptions;
 use crate::vision::map::VisualMap;
@@ -68,7 +73,7 @@ pub fn version(kind: &StageKind) -> &'static str {
         StageKind::Sync { .. } => "sync-3",
         StageKind::Map { .. } => "map-5",
         StageKind::Tool { .. } => "tool-1",
-        StageKind::Localize { .. } => "localize-11",
+        StageKind::Localize { .. } => "localize-12",
         StageKind::Metric { .. } => "metric-2",
         StageKind::Placement { .. } => "placement-2",
         StageKind::Observations { .. } => "observations-3",
@@ -295,10 +300,15 @@ pub fn inputs(ctx: &SessionContext, kind: &StageKind) -> Result<Vec<InputDigest>
             lens,
         } => {
             let w = wrist(ctx, *side)?;
-            vec![
+            let mut v = vec![
                 stream_input(ctx, &ctx.episode(episode), w.camera, lens.name())?,
                 calibration_input(ctx, w)?,
-            ]
+            ];
+            if rear_witnessed(ctx, episode, *side, *lens) {
+                // The witness reads this wrist's front stream of the mapping episode.
+                v.push(stream_input(ctx, &map_ep, w.camera, Lens::Front.name())?);
+            }
+            v
         }
         StageKind::Metric { map } => {
             let (side, _) = map_source(ctx, *map);
@@ -522,11 +532,19 @@ pub struct StageEnv<'a> {
     pub out: &'a Path,
     /// Progress callback.
     pub progress: ProgressFn<'a>,
+    /// Stages it reads that failed or were blocked this run (only those it can do without:
+    /// [`super::graph::StageNode::optional`]); their folders hold nothing to read.
+    pub unavailable: &'a [StageId],
 }
 
 impl StageEnv<'_> {
     fn dep_dir(&self, kind: &StageKind) -> PathBuf {
         id_of(kind).dir(&self.ctx.root)
+    }
+
+    /// Whether every one of `stages` gave its outputs this run.
+    fn available(&self, stages: &[StageId]) -> bool {
+        stages.iter().all(|s| !self.unavailable.contains(s))
     }
 }
 
@@ -764,6 +782,55 @@ pub struct ToolRecord {
     pub calibration: Option<ToolCalibration>,
 }
 
+/// Whether a localization stage has a witness of where its lens stands
+/// ([`super::graph::rear_witness_deps`]): the mapping episode's rear stream of a wrist that did
+/// not build the rear map.
+pub fn rear_witnessed(ctx: &SessionContext, episode: &str, side: Side, lens: Lens) -> bool {
+    lens == Lens::Rear
+        && episode == ctx.session.map_episode
+        && !super::graph::rear_witness_deps(ctx, side).is_empty()
+}
+
+/// The witness of where the rear lens of `side` stands in the mapping episode (`rear_times`,
+/// its frames): this wrist's front stream localized in the map wrist's front map, carried into
+/// the rear map through that map's metric recovery and placement
+/// ([`rear_poses_from_other_front_map`]).
+fn rear_witness(env: &StageEnv<'_>, side: Side, rear_times: &[f64]) -> Result<Vec<Option<Pose>>> {
+    let ctx = env.ctx;
+    let map_side = ctx.map_side();
+    let map_ep = ctx.session.map_episode.clone();
+    let map = VisualMap::load(
+        &env.dep_dir(&StageKind::Map {
+            map: MapName::Front(map_side),
+        })
+        .join(MAP_FILE),
+    )?;
+    let front = open_stream(ctx, &map_ep, side, Lens::Front)?;
+    let (results, summary) =
+        localize_stream(&map, &front, &LocalizerOptions::default(), &mut |_, _| {})?;
+    tracing::info!(
+        "{map_ep}/{}: the front lens has a pose at {} of {} frames in the {} front map \
+         (the witness of the rear lens's runs)",
+        side.camera_name(),
+        summary.localized,
+        summary.frames,
+        map_side.camera_name()
+    );
+    let rows: Vec<Localization> = results
+        .iter()
+        .map(|r| Localization {
+            t: r.t,
+            valid: r.map_from_cam.is_some(),
+            map_from_cam: r.map_from_cam.unwrap_or_else(Pose::identity),
+        })
+        .collect();
+    let w = wrist(ctx, side)?;
+    let other = scene_reference(ctx, map_side)?;
+    Ok(rear_poses_from_other_front_map(
+        rear_times, &rows, &other, &w.front, &w.rear,
+    ))
+}
+
 fn run_localize(env: &StageEnv<'_>, episode: &str, side: Side, lens: Lens) -> Result<()> {
     let map_dir = env.dep_dir(&StageKind::Map {
         map: MapName::for_lens(side, lens),
@@ -784,11 +851,16 @@ fn run_localize(env: &StageEnv<'_>, episode: &str, side: Side, lens: Lens) -> Re
         }
         None => Vec::new(),
     };
-    let (results, summary) = localize_stream_with_other_lens(
+    let witnessed = rear_witnessed(env.ctx, episode, side, lens)
+        && env.available(&super::graph::rear_witness_deps(env.ctx, side));
+    let rear_times: Vec<f64> = stream.frames.iter().map(|f| f.t).collect();
+    let mut ask = || rear_witness(env, side, &rear_times);
+    let (results, summary) = localize_stream_with_witness(
         &map,
         &stream,
         &LocalizerOptions::default(),
         &other_lens,
+        witnessed.then_some(&mut ask as Witness<'_>),
         &mut |done, total| (env.progress)(done, total),
     )?;
     if let (Some(reference), Some(agreement)) =
@@ -825,7 +897,7 @@ struct LensAgreement {
 /// a frame that has both.
 fn other_lens_agreement(
     results: &[crate::vision::localize::FrameLocalization],
-    predicted: &[Option<kiwi_core::geometry::Pose>],
+    predicted: &[Option<Pose>],
 ) -> Option<LensAgreement> {
     let (mut distances, mut angles): (Vec<f64>, Vec<f64>) = results
         .iter()
@@ -851,7 +923,7 @@ fn localizations_of(
     episode: &str,
     side: Side,
     lens: Lens,
-) -> Result<Vec<crate::formats::tables::Localization>> {
+) -> Result<Vec<Localization>> {
     let dir = env.dep_dir(&StageKind::Localize {
         episode: episode.to_string(),
         side,

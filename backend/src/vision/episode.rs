@@ -9,6 +9,7 @@
 //! parallel batches (decoding is independent per frame, so results do not depend on the
 //! thread count); the vision itself runs sequentially in frame order.
 
+use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -34,7 +35,8 @@ use crate::vision::map::VisualMap;
 use crate::vision::mapping::{MapperOptions, global_adjustment, reconstruct};
 use crate::vision::quality::{MapQuality, assess};
 use crate::vision::runs::{
-    RunBook, conflict_reason, conflicts, runs_joining_withdrawn, runs_to_withdraw, withdraw,
+    Conflict, RunBook, WitnessJudgement, conflict_reason, conflicts, judge_runs,
+    runs_joining_withdrawn, runs_to_withdraw, withdraw, witness_reason,
 };
 
 /// Angle of one pixel at the centre of the 960 px X5 lens the mapper's defaults are tuned for.
@@ -423,6 +425,14 @@ pub struct LocalizeSummary {
     /// guided matching around it, and what tracking carried from there); 0 without that pose.
     #[serde(default)]
     pub from_other_lens: usize,
+    /// Frames kept in runs that met a run they do not join because an independent witness
+    /// (the other wrist's front map) placed them where they stand; 0 without a witness.
+    #[serde(default)]
+    pub kept_by_witness: usize,
+    /// Frames localized, after the runs check, around where that witness places the lens
+    /// (runs begun by guided matching there, and what tracking carried from there).
+    #[serde(default)]
+    pub found_around_witness: usize,
 }
 
 /// Summarize per-frame results.
@@ -455,6 +465,8 @@ pub fn summarize(results: &[FrameLocalization], seconds: f64) -> LocalizeSummary
         relocalization_attempts_per_lost_second: 0.0,
         first_pose_after_s: None,
         from_other_lens: 0,
+        kept_by_witness: 0,
+        found_around_witness: 0,
     }
 }
 
@@ -497,6 +509,27 @@ pub fn localize_stream_with_other_lens(
     stream: &LensStream,
     options: &LocalizerOptions,
     other_lens: &[Option<Pose>],
+    progress: &mut dyn FnMut(usize, usize),
+) -> Result<(Vec<FrameLocalization>, LocalizeSummary)> {
+    localize_stream_with_witness(map, stream, options, other_lens, None, progress)
+}
+
+/// Where a witness independent of the stream's map places the lens: per frame `map_from_cam`
+/// (`None` where it has none), computed only when asked — when two of the stream's runs cannot
+/// both be right ([`crate::vision::runs`]). The pipeline's witness for the other wrist's rear
+/// lens in the mapping episode is that wrist's front lens localized in the map wrist's front
+/// map, carried into the rear map through that map's metric recovery and placement.
+pub type Witness<'a> = &'a mut dyn FnMut() -> Result<Vec<Option<Pose>>>;
+
+/// [`localize_stream_with_other_lens`], with a [`Witness`] that decides between runs that do
+/// not join: of two such runs, one the witness places where it stands is kept and the other
+/// withdrawn ([`runs_to_withdraw`]).
+pub fn localize_stream_with_witness(
+    map: &VisualMap,
+    stream: &LensStream,
+    options: &LocalizerOptions,
+    other_lens: &[Option<Pose>],
+    witness: Option<Witness<'_>>,
     progress: &mut dyn FnMut(usize, usize),
 ) -> Result<(Vec<FrameLocalization>, LocalizeSummary)> {
     let start = Instant::now();
@@ -546,16 +579,33 @@ pub fn localize_stream_with_other_lens(
     let found_by_other: Vec<bool> = (results.iter().zip(&lost_before))
         .map(|(r, &lost)| lost && r.status != LocalizationStatus::Lost)
         .collect();
-    let (look_attempts, look_s) = withdraw_look_alikes(
+    let depth = localizer.map_depth();
+    let look = withdraw_look_alikes(
         map,
         stream,
         options,
-        localizer.map_depth(),
+        depth,
+        witness,
         &mut results,
         &mut book,
     )?;
-    attempts += look_attempts;
-    attempt_s += look_s;
+    attempts += look.attempts;
+    attempt_s += look.seconds;
+    let mut found_around_witness = 0;
+    if let Some(witnessed) = &look.witnessed {
+        let (a, s, found) = around_witness(
+            map,
+            stream,
+            options,
+            depth,
+            witnessed,
+            &mut results,
+            &mut book,
+        )?;
+        attempts += a;
+        attempt_s += s;
+        found_around_witness = found;
+    }
     let mut summary = summarize(&results, start.elapsed().as_secs_f64());
     summary.relocalization_attempts = attempts;
     summary.first_pose_after_s = first_pose_after_s;
@@ -563,6 +613,8 @@ pub fn localize_stream_with_other_lens(
     summary.from_other_lens = (results.iter().zip(&found_by_other))
         .filter(|(r, found)| **found && r.status != LocalizationStatus::Lost)
         .count();
+    summary.kept_by_witness = look.kept_by_witness;
+    summary.found_around_witness = found_around_witness;
     summary.relocalization_ms_per_attempt = 1e3 * attempt_s / attempts.max(1) as f64;
     summary.relocalization_attempts_per_lost_second = if lost_forward > 0.0 {
         attempts as f64 / lost_forward
@@ -660,23 +712,49 @@ fn from_other_lens(
 /// start rests on less, then fill the withdrawn frames again backwards from the runs that stay
 /// (without whole-map matches once one has fooled the stream), withdraw refilled runs that join
 /// a withdrawn pose (the same look-alike), and whatever still does not join. `depth` is the
-/// map's median keyframe-to-landmark depth. Returns the refill's relocalization attempts and
-/// their wall time (s).
+/// map's median keyframe-to-landmark depth. With a `witness`, asked once the stream holds runs
+/// that do not join, a run the witness places where it stands is kept against one it does not
+/// ([`runs_to_withdraw`]) and is not withdrawn for joining a withdrawn pose.
 fn withdraw_look_alikes(
     map: &VisualMap,
     stream: &LensStream,
     options: &LocalizerOptions,
     depth: f64,
+    witness: Option<Witness<'_>>,
     results: &mut [FrameLocalization],
     book: &mut RunBook,
-) -> Result<(usize, f64)> {
+) -> Result<LookAlikes> {
     let found = conflicts(results, book, depth);
     if found.is_empty() {
-        return Ok((0, 0.0));
+        return Ok(LookAlikes::default());
     }
+    let witnessed = match witness {
+        Some(ask) => Some(ask()?),
+        None => None,
+    };
+    let witness_poses = witnessed.as_deref().unwrap_or_default();
+    let judge = |r: &[FrameLocalization], b: &RunBook| judge_runs(r, b, witness_poses, depth);
+    let judged = judge(results, book);
+    // The runs that meet a run they do not join and agree with the witness.
+    let placed = |conflicts: &[Conflict], b: &RunBook, judged: &[Option<WitnessJudgement>]| {
+        (conflicts.iter())
+            .flat_map(|c| [b.frame_run[c.before], b.frame_run[c.after]])
+            .flatten()
+            .filter(|&run| {
+                judged
+                    .get(run)
+                    .copied()
+                    .flatten()
+                    .is_some_and(|j| j.agrees())
+            })
+            .collect::<BTreeSet<usize>>()
+    };
+    let mut met = placed(&found, book, &judged);
     let mut gone = vec![None; results.len()];
-    let runs = runs_to_withdraw(&found, book);
-    let why = |r: &[FrameLocalization], b: &RunBook, run| conflict_reason(r, b, &found, run);
+    let runs = runs_to_withdraw(&found, book, &judged);
+    let why = |r: &[FrameLocalization], b: &RunBook, run| {
+        witness_reason(b, &judged, run).unwrap_or_else(|| conflict_reason(r, b, &found, run))
+    };
     let mut withdrawn = withdraw(results, book, &runs, why, &mut gone);
     let fooled_whole_map = runs
         .iter()
@@ -694,7 +772,8 @@ fn withdraw_look_alikes(
     // Withdrawing a run can show the next one that joins it; each round withdraws at least one
     // run, so this ends.
     loop {
-        let again = runs_joining_withdrawn(results, book, &gone, depth);
+        let judged = judge(results, book);
+        let again = runs_joining_withdrawn(results, book, &gone, depth, &judged);
         if again.is_empty() {
             break;
         }
@@ -709,15 +788,87 @@ fn withdraw_look_alikes(
         withdrawn += withdraw(results, book, &again, why_again, &mut gone);
     }
     let left = conflicts(results, book, depth);
-    let runs = runs_to_withdraw(&left, book);
-    let why = |r: &[FrameLocalization], b: &RunBook, run| conflict_reason(r, b, &left, run);
+    let judged = judge(results, book);
+    let runs = runs_to_withdraw(&left, book, &judged);
+    let why = |r: &[FrameLocalization], b: &RunBook, run| {
+        witness_reason(b, &judged, run).unwrap_or_else(|| conflict_reason(r, b, &left, run))
+    };
+    met.extend(placed(&left, book, &judged));
     withdrawn += withdraw(results, book, &runs, why, &mut gone);
+    let kept = (book.frame_run.iter().flatten())
+        .filter(|run| met.contains(run))
+        .count();
     tracing::info!(
-        "{}/{}: {withdrawn} frames withdrawn from runs that do not join the stream",
+        "{}/{}: {withdrawn} frames withdrawn from runs that do not join the stream; {kept} \
+         kept in runs the other wrist's witness placed",
         stream.camera_name,
         stream.lens
     );
-    Ok(cost)
+    Ok(LookAlikes {
+        attempts: cost.0,
+        seconds: cost.1,
+        kept_by_witness: kept,
+        witnessed,
+    })
+}
+
+/// What [`withdraw_look_alikes`] did.
+#[derive(Default)]
+struct LookAlikes {
+    /// The refill's relocalization attempts.
+    attempts: usize,
+    /// Their wall time (s).
+    seconds: f64,
+    /// Frames kept in runs that met a conflict because the witness placed them.
+    kept_by_witness: usize,
+    /// The witness's poses, when it was asked.
+    witnessed: Option<Vec<Option<Pose>>>,
+}
+
+/// Localize the frames still lost around where the witness places the lens (as
+/// [`from_other_lens`] does around the other lens's pose), then withdraw the runs begun there
+/// that the witness does not place where they end up, and any run that does not join another
+/// which the witness does place ([`runs_to_withdraw`]). Returns the relocalization attempts,
+/// their wall time (s), and the frames found this way that stay.
+fn around_witness(
+    map: &VisualMap,
+    stream: &LensStream,
+    options: &LocalizerOptions,
+    depth: f64,
+    witnessed: &[Option<Pose>],
+    results: &mut [FrameLocalization],
+    book: &mut RunBook,
+) -> Result<(usize, f64, usize)> {
+    let lost_before: Vec<bool> = results
+        .iter()
+        .map(|r| r.status == LocalizationStatus::Lost)
+        .collect();
+    let runs_before = book.runs.len();
+    let (attempts, seconds) = from_other_lens(map, stream, options, witnessed, results, book)?;
+    let judged = judge_runs(results, book, witnessed, depth);
+    let left = conflicts(results, book, depth);
+    let mut runs = runs_to_withdraw(&left, book, &judged);
+    runs.extend((runs_before..book.runs.len()).filter(|&r| {
+        judged
+            .get(r)
+            .copied()
+            .flatten()
+            .is_some_and(|j| !j.agrees())
+    }));
+    let why = |r: &[FrameLocalization], b: &RunBook, run| {
+        witness_reason(b, &judged, run).unwrap_or_else(|| conflict_reason(r, b, &left, run))
+    };
+    let mut gone = vec![None; results.len()];
+    withdraw(results, book, &runs, why, &mut gone);
+    let found = (results.iter().zip(&lost_before))
+        .filter(|(r, lost)| **lost && r.status != LocalizationStatus::Lost)
+        .count();
+    tracing::info!(
+        "{}/{}: {found} frames found around where the other wrist's witness places the lens",
+        stream.camera_name,
+        stream.lens
+    );
+    Ok((attempts, seconds, found))
 }
 
 /// A fresh localizer for a stream's lens, camera and mask.

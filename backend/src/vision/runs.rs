@@ -284,14 +284,96 @@ fn start_weight(source: RelocalizationSource) -> u8 {
     }
 }
 
-/// The runs to withdraw for `conflicts`: of two runs that cannot both be right, the one whose
-/// start rests on less ([`start_weight`]); both when their starts are alike.
-pub fn runs_to_withdraw(conflicts: &[Conflict], book: &RunBook) -> BTreeSet<usize> {
+/// Farthest a run's poses may lie from where an independent witness places the lens (median
+/// over the frames they share, in median map depths) and still agree with it: half the smallest
+/// look-alike offset measured where a look-alike run met a right one (0.13 depths, a kitchen's
+/// tiles), and 3-6 times the witness's own error (measured: docs/vision.md, "The other wrist
+/// as a witness").
+pub const WITNESS_ALLOWANCE_DEPTHS: f64 = 0.065;
+/// Fewest frames a run must share with the witness to be judged by it: one or two frames of a
+/// witness can themselves be a stray pose; five at 30 Hz are a sixth of a second of agreement.
+pub const MIN_WITNESS_FRAMES: usize = 5;
+
+/// How a run compares with an independent witness of the lens's pose (another localization of
+/// the same wrist that neither shares the run's map nor its look-alikes).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct WitnessJudgement {
+    /// Frames where both the run and the witness hold a pose.
+    pub frames: usize,
+    /// Median camera-centre distance between them over those frames (median map depths).
+    pub median_depths: f64,
+}
+
+impl WitnessJudgement {
+    /// Whether the run stands where the witness places the lens
+    /// ([`WITNESS_ALLOWANCE_DEPTHS`]).
+    pub fn agrees(&self) -> bool {
+        self.median_depths <= WITNESS_ALLOWANCE_DEPTHS
+    }
+}
+
+/// Each run's [`WitnessJudgement`] against `witness` (per frame `map_from_cam`, `None` where the
+/// witness has none); `None` for a run sharing fewer than [`MIN_WITNESS_FRAMES`] frames with it
+/// (or without one at all). `depth` is the map's median keyframe-to-landmark depth.
+pub fn judge_runs(
+    results: &[FrameLocalization],
+    book: &RunBook,
+    witness: &[Option<Pose>],
+    depth: f64,
+) -> Vec<Option<WitnessJudgement>> {
+    let mut distances: Vec<Vec<f64>> = vec![Vec::new(); book.runs.len()];
+    for ((r, run), w) in results.iter().zip(&book.frame_run).zip(witness) {
+        if let (Some(p), Some(run), Some(w)) = (r.map_from_cam, run, w)
+            && let Some(d) = distances.get_mut(*run)
+        {
+            d.push((p.translation.vector - w.translation.vector).norm() / depth);
+        }
+    }
+    distances
+        .into_iter()
+        .map(|mut d| {
+            if d.len() < MIN_WITNESS_FRAMES || !depth.is_finite() || depth <= 0.0 {
+                return None;
+            }
+            d.sort_by(f64::total_cmp);
+            Some(WitnessJudgement {
+                frames: d.len(),
+                median_depths: d[d.len() / 2],
+            })
+        })
+        .collect()
+}
+
+/// Whether the witness places run `run` where it stands (`None`: not judged).
+fn witness_agrees(judged: &[Option<WitnessJudgement>], run: usize) -> Option<bool> {
+    judged.get(run).copied().flatten().map(|j| j.agrees())
+}
+
+/// The runs to withdraw for `conflicts`: of two runs that cannot both be right, the one a
+/// witness does not place where it stands when the witness places the other there (`judged`,
+/// per run, from [`judge_runs`]; empty without a witness); else the one whose start rests on
+/// less ([`start_weight`]); both when their starts are alike.
+pub fn runs_to_withdraw(
+    conflicts: &[Conflict],
+    book: &RunBook,
+    judged: &[Option<WitnessJudgement>],
+) -> BTreeSet<usize> {
     let mut out = BTreeSet::new();
     for c in conflicts {
         let (Some(ra), Some(rb)) = (book.frame_run[c.before], book.frame_run[c.after]) else {
             continue;
         };
+        match (witness_agrees(judged, ra), witness_agrees(judged, rb)) {
+            (Some(true), Some(true)) | (Some(false) | None, Some(false) | None) => {}
+            (Some(true), _) => {
+                out.insert(rb);
+                continue;
+            }
+            (_, Some(true)) => {
+                out.insert(ra);
+                continue;
+            }
+        }
         let (wa, wb) = (
             start_weight(book.runs[ra].source),
             start_weight(book.runs[rb].source),
@@ -343,6 +425,25 @@ pub fn conflict_reason(
     )
 }
 
+/// Why a run the witness does not place where it stands is withdrawn.
+pub fn witness_reason(
+    book: &RunBook,
+    judged: &[Option<WitnessJudgement>],
+    run: usize,
+) -> Option<String> {
+    let j = judged.get(run).copied().flatten().filter(|j| !j.agrees())?;
+    let start = book.runs[run];
+    Some(format!(
+        "withdrawn: the run that began at frame {} ({}) does not join the stream's other poses \
+         and lies {:.2} map depths (median over {} frames) from where the other wrist's front \
+         map places this lens (a look-alike place in repeated texture)",
+        start.start,
+        start.source.describe(),
+        j.median_depths,
+        j.frames
+    ))
+}
+
 /// Longest time across frames without a pose over which a pose can be said to join a withdrawn
 /// one (s): a few frame intervals, where the motion bound is still tighter than a pattern period.
 pub const MAX_JOIN_GAP_S: f64 = 0.2;
@@ -354,12 +455,14 @@ pub const MAX_JOIN_DEPTHS: f64 = 0.25;
 /// withdrawn pose, on either side (or the frame itself), is a withdrawn one within
 /// [`MAX_JOIN_GAP_S`], within the motion a hand makes between them (at most
 /// [`MAX_JOIN_DEPTHS`]). A pose that joins a place shown to be a look-alike is at that
-/// look-alike too.
+/// look-alike too — unless a witness places the run where it stands (`judged`, per run, from
+/// [`judge_runs`]; empty without a witness).
 pub fn runs_joining_withdrawn(
     results: &[FrameLocalization],
     book: &RunBook,
     withdrawn: &[Option<Pose>],
     depth: f64,
+    judged: &[Option<WitnessJudgement>],
 ) -> BTreeSet<usize> {
     let n = results.len();
     let joins = |i: usize, j: usize, p: &Pose| -> bool {
@@ -391,6 +494,9 @@ pub fn runs_joining_withdrawn(
         let (Some(p), Some(run)) = (r.map_from_cam, book.frame_run[i]) else {
             continue;
         };
+        if witness_agrees(judged, run) == Some(true) {
+            continue;
+        }
         let candidates = [Some(i), nearest(i, false), nearest(i, true)];
         if candidates.into_iter().flatten().any(|j| joins(i, j, &p)) {
             out.insert(run);
@@ -496,7 +602,7 @@ mod tests {
         assert_eq!(found.len(), 1);
         assert_eq!((found[0].before, found[0].after), (29, 30));
         assert!((found[0].jump_depths - 0.91).abs() < 1e-9);
-        let runs = runs_to_withdraw(&found, &book);
+        let runs = runs_to_withdraw(&found, &book, &[]);
         assert_eq!(runs, BTreeSet::from([0]));
         let mut gone = vec![None; 60];
         let why = |r: &[FrameLocalization], b: &RunBook, run| conflict_reason(r, b, &found, run);
@@ -516,7 +622,7 @@ mod tests {
         use RelocalizationSource::Window;
         let (mut results, mut book) = two_runs(40, 10, -0.5, Window, Window);
         let found = conflicts(&results, &book, 1.0);
-        let runs = runs_to_withdraw(&found, &book);
+        let runs = runs_to_withdraw(&found, &book, &[]);
         assert_eq!(runs, BTreeSet::from([0, 1]));
         let mut gone = vec![None; 40];
         let why = |r: &[FrameLocalization], b: &RunBook, run| conflict_reason(r, b, &found, run);
@@ -528,7 +634,7 @@ mod tests {
         use RelocalizationSource::{WholeMap, Window};
         let (mut results, mut book) = two_runs(60, 30, 0.9, WholeMap, Window);
         let found = conflicts(&results, &book, 1.0);
-        let runs = runs_to_withdraw(&found, &book);
+        let runs = runs_to_withdraw(&found, &book, &[]);
         let mut gone = vec![None; 60];
         let why = |r: &[FrameLocalization], b: &RunBook, run| conflict_reason(r, b, &found, run);
         withdraw(&mut results, &mut book, &runs, why, &mut gone);
@@ -544,9 +650,96 @@ mod tests {
             book.frame_run[i] = Some(other);
         }
         assert_eq!(
-            runs_joining_withdrawn(&results, &book, &gone, 1.0),
+            runs_joining_withdrawn(&results, &book, &gone, 1.0, &[]),
             BTreeSet::from([again])
         );
+    }
+
+    /// A witness at `x = 0.01 i + offset` for frames `range` (none elsewhere).
+    fn witness_over(n: usize, range: std::ops::Range<usize>, offset: f64) -> Vec<Option<Pose>> {
+        (0..n)
+            .map(|i| {
+                range.contains(&i).then(|| {
+                    Pose::from_parts(
+                        Translation3::new(0.01 * i as f64 + offset, 0.0, 0.0),
+                        UnitQuaternion::identity(),
+                    )
+                })
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_witness_keeps_the_run_it_places_and_withdraws_the_other() {
+        use RelocalizationSource::Window;
+        // Alike starts: without a witness both runs go (see above).
+        let (mut results, mut book) = two_runs(40, 10, -0.5, Window, Window);
+        let found = conflicts(&results, &book, 1.0);
+        // The witness, 1 cm off the first run's place, sees both runs' frames.
+        let judged = judge_runs(&results, &book, &witness_over(40, 0..40, 0.01), 1.0);
+        assert!(judged[0].is_some_and(|j| j.agrees() && j.frames == 10));
+        assert!(judged[1].is_some_and(|j| !j.agrees() && (j.median_depths - 0.51).abs() < 1e-9));
+        let runs = runs_to_withdraw(&found, &book, &judged);
+        assert_eq!(runs, BTreeSet::from([1]));
+        let mut gone = vec![None; 40];
+        let why = |r: &[FrameLocalization], b: &RunBook, run| {
+            witness_reason(b, &judged, run).unwrap_or_else(|| conflict_reason(r, b, &found, run))
+        };
+        assert_eq!(withdraw(&mut results, &mut book, &runs, why, &mut gone), 30);
+        assert!(results[10..].iter().all(
+            |r| is_withdrawn(r) && r.reason.contains("0.51 map depths (median over 30 frames)")
+        ));
+        assert!(results[..10].iter().all(|r| r.map_from_cam.is_some()));
+        // The witness placing the second run keeps it instead, even against a run begun by the
+        // other lens (which rests on more).
+        let (results, mut book) = two_runs(40, 10, -0.5, Window, Window);
+        book.runs[0].source = RelocalizationSource::OtherLens;
+        let judged = judge_runs(&results, &book, &witness_over(40, 0..40, -0.5), 1.0);
+        let found = conflicts(&results, &book, 1.0);
+        assert_eq!(
+            runs_to_withdraw(&found, &book, &judged),
+            BTreeSet::from([0])
+        );
+    }
+
+    #[test]
+    fn a_witness_decides_nothing_without_enough_frames_or_where_it_places_neither() {
+        use RelocalizationSource::Window;
+        let (results, book) = two_runs(40, 10, -0.5, Window, Window);
+        let found = conflicts(&results, &book, 1.0);
+        // Four frames of the witness on the first run: not judged, so the starts decide.
+        let few = witness_over(40, 2..6, 0.0);
+        let judged = judge_runs(&results, &book, &few, 1.0);
+        assert_eq!(judged[0], None);
+        assert_eq!(
+            runs_to_withdraw(&found, &book, &judged),
+            BTreeSet::from([0, 1])
+        );
+        // A witness 0.25 depths from both places neither.
+        let judged = judge_runs(&results, &book, &witness_over(40, 0..40, -0.25), 1.0);
+        assert!(judged.iter().all(|j| j.is_some_and(|j| !j.agrees())));
+        assert_eq!(
+            runs_to_withdraw(&found, &book, &judged),
+            BTreeSet::from([0, 1])
+        );
+    }
+
+    #[test]
+    fn a_run_the_witness_places_is_not_withdrawn_for_joining_a_withdrawn_pose() {
+        use RelocalizationSource::{WholeMap, Window};
+        let (mut results, mut book) = two_runs(60, 30, 0.9, WholeMap, Window);
+        let found = conflicts(&results, &book, 1.0);
+        let runs = runs_to_withdraw(&found, &book, &[]);
+        let mut gone = vec![None; 60];
+        let why = |r: &[FrameLocalization], b: &RunBook, run| conflict_reason(r, b, &found, run);
+        withdraw(&mut results, &mut book, &runs, why, &mut gone);
+        let again = book.open(5, WholeMap);
+        for i in 0..5 {
+            results[i] = posed(i, 0.01 * i as f64 + 0.03, LocalizationStatus::Tracked);
+            book.frame_run[i] = Some(again);
+        }
+        let judged = judge_runs(&results, &book, &witness_over(60, 0..60, 0.02), 1.0);
+        assert!(runs_joining_withdrawn(&results, &book, &gone, 1.0, &judged).is_empty());
     }
 
     #[test]
@@ -554,7 +747,7 @@ mod tests {
         use RelocalizationSource::{WholeMap, Window};
         let (mut results, mut book) = two_runs(60, 18, 0.9, WholeMap, Window);
         let found = conflicts(&results, &book, 1.0);
-        let runs = runs_to_withdraw(&found, &book);
+        let runs = runs_to_withdraw(&found, &book, &[]);
         assert_eq!(runs, BTreeSet::from([0]));
         let mut gone = vec![None; 60];
         let why = |r: &[FrameLocalization], b: &RunBook, run| conflict_reason(r, b, &found, run);
@@ -575,7 +768,7 @@ mod tests {
             book.frame_run[i] = Some(again);
         }
         assert_eq!(
-            runs_joining_withdrawn(&results, &book, &gone, 1.0),
+            runs_joining_withdrawn(&results, &book, &gone, 1.0, &[]),
             BTreeSet::from([again])
         );
     }
@@ -617,7 +810,7 @@ mod tests {
         assert_eq!((found[0].before, found[0].after), (29, 30));
         let step = found[0].step_depths.unwrap_or(f64::NAN);
         assert!((step - 0.13).abs() < 1e-9, "step {step}");
-        assert_eq!(runs_to_withdraw(&found, &book), BTreeSet::from([0]));
+        assert_eq!(runs_to_withdraw(&found, &book, &[]), BTreeSet::from([0]));
         let reason = conflict_reason(&results, &book, &found, 0);
         assert!(reason.contains("0.13-depth step"), "{reason}");
     }
