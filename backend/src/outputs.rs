@@ -180,8 +180,14 @@ pub struct EpisodeInputs {
     pub episode: String,
     /// The map episode of the session.
     pub map_episode: String,
-    /// Wrists in order.
+    /// Wrists in order (those whose stages gave their outputs).
     pub wrists: Vec<WristInputs>,
+    /// Wrists without a trajectory, each with why (`left`/`right`, the reason): the episode is
+    /// `unusable`, and the other wrist is published.
+    pub missing_wrists: Vec<(String, String)>,
+    /// Parts of the episode not published because their stage failed (the head's track, the
+    /// floor), each with why: the episode is at best `suspect`.
+    pub missing_parts: Vec<String>,
     /// The episode's sync result.
     pub sync: SyncResult,
     /// Metric recovery of each map (`rear`, `front-left`, …).
@@ -570,6 +576,15 @@ pub fn write_outputs(inputs: &EpisodeInputs, dir: &Path) -> Result<QualityRecord
     })?;
     let mut wrists = BTreeMap::new();
     let mut v = VerdictBuilder::default();
+    for (camera, why) in &inputs.missing_wrists {
+        v.add(
+            Verdict::Unusable,
+            format!("{camera}: no trajectory (only the other wrist is published): {why}"),
+        );
+    }
+    for why in &inputs.missing_parts {
+        v.add(Verdict::Suspect, why.clone());
+    }
     for w in &inputs.wrists {
         let clock = inputs.sync.cameras.iter().find(|c| c.name == w.camera);
         let floor_z = inputs.floor.as_ref().and_then(|f| f.summary.floor.z_m());

@@ -1,7 +1,8 @@
 //! `kiwi run` as a command: a run killed during localization resumes and ends byte-identical to
 //! an uninterrupted run (with another thread count, datasets included), `kiwi status` says where stages stand, and
 //! a map episode that cannot be mapped gives every episode an `unusable` verdict naming the
-//! stream, with exit status 2.
+//! stream, with exit status 2; a wrist whose stream is missing in one episode leaves that episode
+//! `unusable` with the other wrist published.
 
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
@@ -13,7 +14,9 @@ use kiwi_fixtures::session::{SessionOptions, write_session};
 
 #[path = "support/pipeline_sessions.rs"]
 mod sessions;
-use sessions::{copy_inputs, files, localizing, small_session_with_head, unmappable_session};
+use sessions::{
+    copy_inputs, files, localizing, small_session, small_session_with_head, unmappable_session,
+};
 
 const KIWI: &str = env!("CARGO_BIN_EXE_kiwi");
 /// Longest the killed run may take to reach localization before the test gives up.
@@ -317,6 +320,49 @@ fn a_killed_run_resumes_to_byte_identical_results() {
             .join("evaluation/ablation.json")
             .is_file()
     );
+}
+
+/// A wrist whose stages fail in one episode (its front stream is missing) does not take the
+/// other wrist with it: the episode is `unusable`, says which stream is missing, and publishes
+/// the other wrist's trajectory; the other episode is untouched.
+#[test]
+fn a_missing_stream_of_one_wrist_publishes_the_other_wrist() {
+    let tmp = tempfile::tempdir().unwrap();
+    let toml = small_session(tmp.path(), 2);
+    let root = toml.parent().unwrap();
+    let ep1 = root.join("episodes/ep001");
+    std::fs::remove_dir_all(ep1.join("right/front")).unwrap();
+    let out = Command::new(KIWI)
+        .args(["run", "--json", "--session"])
+        .arg(&toml)
+        .output()
+        .unwrap();
+    assert_eq!(
+        out.status.code(),
+        Some(2),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let episodes = report["episodes"].as_array().unwrap();
+    assert_ne!(episodes[0]["verdict"], "unusable", "{}", episodes[0]);
+    assert_eq!(episodes[1]["verdict"], "unusable");
+    let reasons = episodes[1]["reasons"].to_string();
+    assert!(
+        reasons.contains("right: no trajectory") && reasons.contains("right/front"),
+        "{reasons}"
+    );
+    let published = ep1.join("out");
+    assert!(
+        published.join("left.csv").is_file() && published.join("left_tip.tum").is_file(),
+        "{reasons}"
+    );
+    assert!(!published.join("right.csv").exists());
+    let quality: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(published.join("quality.json")).unwrap()).unwrap();
+    let wrists: Vec<&String> = quality["wrists"].as_object().unwrap().keys().collect();
+    assert_eq!(wrists, ["left"]);
+    assert!(root.join("episodes/ep000/out/right.csv").is_file());
 }
 
 #[test]

@@ -239,6 +239,56 @@ pub fn id_of(kind: &StageKind) -> StageId {
     }
 }
 
+/// The stages of one wrist that an episode's outputs read: its localizations, observations,
+/// fusion and gripper openings in the episode, its front map's metric recovery and its
+/// placement. When one of them fails the outputs publish the other wrist, and the episode is
+/// `unusable` with the reason.
+pub fn wrist_output_deps(ctx: &SessionContext, episode: &str, side: Side) -> Vec<StageId> {
+    let on = |kind: StageKind| id_of(&kind);
+    let episode = episode.to_string();
+    let mut v = vec![
+        on(StageKind::Localize {
+            episode: episode.clone(),
+            side,
+            lens: Lens::Front,
+        }),
+        on(StageKind::Localize {
+            episode: episode.clone(),
+            side,
+            lens: Lens::Rear,
+        }),
+        on(StageKind::Observations {
+            episode: episode.clone(),
+            side,
+        }),
+        on(StageKind::Fusion {
+            episode: episode.clone(),
+            side,
+        }),
+        on(StageKind::Metric {
+            map: MapName::Front(side),
+        }),
+        on(StageKind::Placement { side }),
+    ];
+    if ctx.wrists.get(&side).is_some_and(|w| w.tool.is_some()) {
+        v.push(on(StageKind::Gripper { episode, side }));
+    }
+    v
+}
+
+/// What an episode's outputs can do without: each wrist's stages ([`wrist_output_deps`]; at
+/// least one wrist must remain) and the head and floor stages (which read both wrists).
+fn outputs_optional_deps(ctx: &SessionContext, episode: &str) -> Vec<StageId> {
+    let mut v: Vec<StageId> = (ctx.wrists.keys())
+        .flat_map(|&side| wrist_output_deps(ctx, episode, side))
+        .collect();
+    if ctx.session.head.is_some() {
+        v.push(StageId::episode(episode, "head"));
+    }
+    v.push(StageId::episode(episode, "floor"));
+    v
+}
+
 /// Stage families a user can name in `--from`, `--force` and `kiwi status`.
 pub const FAMILIES: [&str; 14] = [
     "sync",
@@ -276,13 +326,19 @@ pub fn build(ctx: &SessionContext, episodes: &[String]) -> Vec<StageNode> {
             side,
             lens: Lens::Rear,
         } if *episode == map_ep => rear_witness_deps(ctx, *side),
+        StageKind::Outputs { episode } => outputs_optional_deps(ctx, episode),
         _ => Vec::new(),
     };
     let mut push = |kind: StageKind, deps: Vec<StageId>| {
         let id = id_of(&kind);
         if !nodes.iter().any(|n| n.id == id) {
             let optional = optional_of(&kind);
-            let deps = deps.into_iter().chain(optional.iter().cloned()).collect();
+            let mut deps = deps;
+            for o in &optional {
+                if !deps.contains(o) {
+                    deps.push(o.clone());
+                }
+            }
             nodes.push(StageNode {
                 id,
                 kind,

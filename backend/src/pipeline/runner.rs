@@ -514,9 +514,11 @@ fn execute(
         let work = StageWork::begin(&ctx.root, &node.id)?;
         let id = node.id.clone();
         let report = |done: usize, total: usize| progress.update(&id, done, total);
-        let unavailable: Vec<StageId> = (deps.iter())
-            .filter(|(_, d)| matches!(d, Decided::Broken(_)))
-            .map(|(id, _)| id.clone())
+        let unavailable: Vec<(StageId, String)> = (deps.iter())
+            .filter_map(|(id, d)| match d {
+                Decided::Broken(reason) => Some((id.clone(), reason.clone())),
+                Decided::Done(_) => None,
+            })
             .collect();
         let env = StageEnv {
             ctx,

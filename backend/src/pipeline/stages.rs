@@ -15,7 +15,7 @@ use kiwi_core::layout::{EpisodeLayout, Side};
 use kiwi_core::tool::ToolCalibration;
 
 use super::context::{SessionContext, WristContext};
-use super::graph::{Lens, MapName, StageKind, id_of};
+use super::graph::{Lens, MapName, StageKind, id_of, wrist_output_deps};
 use super::stage::{InputDigest, Manifest, StageId};
 use crate::error::{BackendError, Result};
 use crate::export::ExportFormat;
@@ -81,7 +81,7 @@ pub fn version(kind: &StageKind) -> &'static str {
         StageKind::Gripper { .. } => "gripper-1",
         StageKind::Head { .. } => "head-2",
         StageKind::Floor { .. } => "floor-2",
-        StageKind::Outputs { .. } => "outputs-4",
+        StageKind::Outputs { .. } => "outputs-5",
         StageKind::Export { .. } => "export-1",
         StageKind::Report => "report-1",
     }
@@ -532,9 +532,9 @@ pub struct StageEnv<'a> {
     pub out: &'a Path,
     /// Progress callback.
     pub progress: ProgressFn<'a>,
-    /// Stages it reads that failed or were blocked this run (only those it can do without:
-    /// [`super::graph::StageNode::optional`]); their folders hold nothing to read.
-    pub unavailable: &'a [StageId],
+    /// Stages it reads that failed or were blocked this run, with the reason (only those it can
+    /// do without: [`super::graph::StageNode::optional`]); their folders hold nothing to read.
+    pub unavailable: &'a [(StageId, String)],
 }
 
 impl StageEnv<'_> {
@@ -544,7 +544,12 @@ impl StageEnv<'_> {
 
     /// Whether every one of `stages` gave its outputs this run.
     fn available(&self, stages: &[StageId]) -> bool {
-        stages.iter().all(|s| !self.unavailable.contains(s))
+        self.missing(stages).is_none()
+    }
+
+    /// The first of `stages` that gave no outputs this run, with why.
+    fn missing(&self, stages: &[StageId]) -> Option<&(StageId, String)> {
+        self.unavailable.iter().find(|(id, _)| stages.contains(id))
     }
 }
 
@@ -1607,13 +1612,22 @@ fn run_outputs(env: &StageEnv<'_>, episode: &str) -> Result<()> {
     let ctx = env.ctx;
     let sync = sync_of(env, episode)?;
     let mut metric = std::collections::BTreeMap::new();
-    let mut maps = vec![MapName::Rear];
-    maps.extend(ctx.wrists.keys().map(|&s| MapName::Front(s)));
-    for map in maps {
-        metric.insert(map.label(), metric_of_map(env, map)?);
-    }
+    metric.insert(MapName::Rear.label(), metric_of_map(env, MapName::Rear)?);
     let mut wrists = Vec::new();
+    let mut missing_wrists = Vec::new();
     for (&side, w) in &ctx.wrists {
+        // A wrist whose stages failed is left out; the other is published.
+        if let Some((stage, why)) = env.missing(&wrist_output_deps(ctx, episode, side)) {
+            let why = if why.starts_with("needs ") {
+                why.clone()
+            } else {
+                format!("needs {}, which failed: {why}", stage.label())
+            };
+            missing_wrists.push((w.camera.to_string(), why));
+            continue;
+        }
+        let front_map = MapName::Front(side);
+        metric.insert(front_map.label(), metric_of_map(env, front_map)?);
         let fused = fused_of(env, episode, side)?;
         let loc = |lens: Lens| {
             localization_record(&env.dep_dir(&StageKind::Localize {
@@ -1675,8 +1689,34 @@ fn run_outputs(env: &StageEnv<'_>, episode: &str) -> Result<()> {
             tool_calibrated,
         });
     }
+    if wrists.is_empty() {
+        let reasons: Vec<String> = (missing_wrists.iter())
+            .map(|(camera, why)| format!("{camera}: {why}"))
+            .collect();
+        return Err(BackendError::Estimation(format!(
+            "no wrist has a trajectory: {}",
+            reasons.join("; ")
+        )));
+    }
+    let head_stage = StageId::episode(episode, "head");
+    let floor_stage = StageId::episode(episode, "floor");
+    // The head and the floor read both wrists: with a wrist missing, its reason says it all.
+    let mut missing_parts = Vec::new();
+    if missing_wrists.is_empty() {
+        if ctx.session.head.is_some()
+            && let Some((_, why)) = env.missing(std::slice::from_ref(&head_stage))
+        {
+            missing_parts.push(format!("head: no track published: {why}"));
+        }
+        if let Some((_, why)) = env.missing(std::slice::from_ref(&floor_stage)) {
+            missing_parts.push(format!(
+                "floor: no floor published (no heights above it): {why}"
+            ));
+        }
+    }
     let head = match &ctx.session.head {
         None => None,
+        Some(_) if !env.available(std::slice::from_ref(&head_stage)) => None,
         Some(_) => {
             let dir = env.dep_dir(&StageKind::Head {
                 episode: episode.to_string(),
@@ -1687,27 +1727,33 @@ fn run_outputs(env: &StageEnv<'_>, episode: &str) -> Result<()> {
             })
         }
     };
-    let floor_dir = env.dep_dir(&StageKind::Floor {
-        episode: episode.to_string(),
-    });
-    let summary_path = floor_dir.join(FLOOR_SUMMARY_FILE);
-    let mut floor_files = stage_files(&floor_dir, &FLOOR_FILES, "floor")?;
-    let summary_bytes = stage_files(&floor_dir, &[FLOOR_SUMMARY_FILE], "floor")?;
-    let summary = serde_json::from_slice(&summary_bytes[0].1).map_err(|e| {
-        input(
-            &summary_path,
-            format!("not a floor stage record: {e}; re-run `kiwi run --force floor`"),
-        )
-    })?;
-    floor_files.extend(summary_bytes);
-    let floor = Some(crate::outputs::FloorOutputs {
-        files: floor_files,
-        summary,
-    });
+    let floor = if env.available(std::slice::from_ref(&floor_stage)) {
+        let floor_dir = env.dep_dir(&StageKind::Floor {
+            episode: episode.to_string(),
+        });
+        let summary_path = floor_dir.join(FLOOR_SUMMARY_FILE);
+        let mut floor_files = stage_files(&floor_dir, &FLOOR_FILES, "floor")?;
+        let summary_bytes = stage_files(&floor_dir, &[FLOOR_SUMMARY_FILE], "floor")?;
+        let summary = serde_json::from_slice(&summary_bytes[0].1).map_err(|e| {
+            input(
+                &summary_path,
+                format!("not a floor stage record: {e}; re-run `kiwi run --force floor`"),
+            )
+        })?;
+        floor_files.extend(summary_bytes);
+        Some(crate::outputs::FloorOutputs {
+            files: floor_files,
+            summary,
+        })
+    } else {
+        None
+    };
     let inputs = crate::outputs::EpisodeInputs {
         episode: episode.to_string(),
         map_episode: ctx.session.map_episode.clone(),
         wrists,
+        missing_wrists,
+        missing_parts,
         sync,
         metric,
         head,
