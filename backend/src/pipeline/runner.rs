@@ -466,14 +466,42 @@ fn execute(
             publish_failure(ctx, node, reason);
         }
     };
-    if let Some((dep, Decided::Broken(reason))) = deps.iter().find(|(id, d)| {
-        matches!(d, Decided::Broken(_)) && !tolerates_broken && !node.optional.contains(id)
-    }) {
-        let reason = if reason.starts_with("needs ") {
-            reason.clone()
-        } else {
-            format!("needs {}, which failed: {reason}", dep.label())
-        };
+    let blocked = !tolerates_broken
+        && deps
+            .iter()
+            .any(|(id, d)| matches!(d, Decided::Broken(_)) && !node.optional.contains(id));
+    if blocked {
+        // Every cause, the required inputs' first: a stage that could do without one failed
+        // input still names it when another stops it.
+        let mut causes: Vec<String> = Vec::new();
+        let required_first = (deps.iter().filter(|(id, _)| !node.optional.contains(id)))
+            .chain(deps.iter().filter(|(id, _)| node.optional.contains(id)));
+        for (dep, d) in required_first {
+            let Decided::Broken(reason) = d else {
+                continue;
+            };
+            // A blocked input's reason is already its causes, joined.
+            let found: Vec<String> = if reason.starts_with("needs ") {
+                (reason.split("; needs "))
+                    .enumerate()
+                    .map(|(k, c)| {
+                        if k == 0 {
+                            c.to_string()
+                        } else {
+                            format!("needs {c}")
+                        }
+                    })
+                    .collect()
+            } else {
+                vec![format!("needs {}, which failed: {reason}", dep.label())]
+            };
+            for cause in found {
+                if !causes.contains(&cause) {
+                    causes.push(cause);
+                }
+            }
+        }
+        let reason = causes.join("; ");
         publish(&reason);
         return (Decided::Broken(reason.clone()), Outcome::Blocked { reason });
     }
