@@ -16,10 +16,11 @@ use std::path::Path;
 use kiwi_backend::formats::tables::read_localizations;
 use kiwi_backend::pipeline::runner::NoProgress;
 use kiwi_backend::pipeline::{RunOptions, SessionContext, run};
+use kiwi_backend::vision::align::umeyama;
 use kiwi_fixtures::scenario::Scenario;
 use kiwi_fixtures::scene::{RoomKind, SceneOptions};
 use kiwi_fixtures::session::{SessionOptions, write_session};
-use nalgebra::{Matrix3, Vector3};
+use nalgebra::Vector3;
 
 /// Kitchens whose right rear lens had every run withdrawn in the mapping episode before the
 /// witness (kitchen 79: the right run frames 246-688; kitchen 83: frames 383-654).
@@ -51,30 +52,6 @@ fn posed(root: &Path, stage: &str) -> Vec<Option<Vector3<f64>>> {
     rows.iter()
         .map(|r| r.valid.then_some(r.map_from_cam.translation.vector))
         .collect()
-}
-
-/// Similarity `world = s R map + t` fitted on point pairs (Umeyama).
-fn similarity(map: &[Vector3<f64>], world: &[Vector3<f64>]) -> (f64, Matrix3<f64>, Vector3<f64>) {
-    let n = map.len() as f64;
-    let mm = map.iter().sum::<Vector3<f64>>() / n;
-    let mw = world.iter().sum::<Vector3<f64>>() / n;
-    let mut cov = Matrix3::zeros();
-    let mut var = 0.0;
-    for (a, b) in map.iter().zip(world) {
-        cov += (b - mw) * (a - mm).transpose();
-        var += (a - mm).norm_squared();
-    }
-    cov /= n;
-    var /= n;
-    let svd = cov.svd(true, true);
-    let (u, v_t) = (svd.u.unwrap(), svd.v_t.unwrap());
-    let mut d = Matrix3::identity();
-    if (u * v_t).determinant() < 0.0 {
-        d[(2, 2)] = -1.0;
-    }
-    let rotation = u * d * v_t;
-    let scale = (svd.singular_values.component_mul(&d.diagonal())).sum() / var;
-    (scale, rotation, mw - scale * rotation * mm)
 }
 
 #[test]
@@ -109,11 +86,11 @@ fn the_left_front_map_places_the_right_rear_lens_in_kitchens() {
         let (map, world): (Vec<_>, Vec<_>) = (left.iter().zip(&left_truth))
             .filter_map(|(p, w)| Some(((*p)?, *w)))
             .unzip();
-        let (s, r, t) = similarity(&map, &world);
+        let world_from_map = umeyama(&map, &world, true).unwrap();
         let right = posed(&root, "localize-right-rear");
         let right_truth = truth_positions(&root, "right", "rear");
         let errors: Vec<f64> = (right.iter().zip(&right_truth))
-            .filter_map(|(p, w)| Some((s * r * (*p)? + t - w).norm()))
+            .filter_map(|(p, w)| Some((world_from_map.transform_point(&(*p)?) - w).norm()))
             .collect();
         let fraction = errors.len() as f64 / right.len() as f64;
         let worst = errors.iter().copied().fold(0.0, f64::max);

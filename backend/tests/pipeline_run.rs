@@ -322,6 +322,23 @@ fn a_killed_run_resumes_to_byte_identical_results() {
     );
 }
 
+/// `kiwi run --json` on `toml`, which must exit with status 2 (an episode unusable): its JSON
+/// report.
+fn run_json_with_unusable(toml: &Path) -> serde_json::Value {
+    let out = Command::new(KIWI)
+        .args(["run", "--json", "--session"])
+        .arg(toml)
+        .output()
+        .unwrap();
+    assert_eq!(
+        out.status.code(),
+        Some(2),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    serde_json::from_slice(&out.stdout).unwrap()
+}
+
 /// A wrist whose stages fail in one episode (its front stream is missing) does not take the
 /// other wrist with it: the episode is `unusable`, says which stream is missing, and publishes
 /// the other wrist's trajectory; the other episode is untouched.
@@ -332,18 +349,7 @@ fn a_missing_stream_of_one_wrist_publishes_the_other_wrist() {
     let root = toml.parent().unwrap();
     let ep1 = root.join("episodes/ep001");
     std::fs::remove_dir_all(ep1.join("right/front")).unwrap();
-    let out = Command::new(KIWI)
-        .args(["run", "--json", "--session"])
-        .arg(&toml)
-        .output()
-        .unwrap();
-    assert_eq!(
-        out.status.code(),
-        Some(2),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let report = run_json_with_unusable(&toml);
     let episodes = report["episodes"].as_array().unwrap();
     assert_ne!(episodes[0]["verdict"], "unusable", "{}", episodes[0]);
     assert_eq!(episodes[1]["verdict"], "unusable");
@@ -369,18 +375,7 @@ fn a_missing_stream_of_one_wrist_publishes_the_other_wrist() {
 fn an_unmappable_map_episode_makes_every_episode_unusable_and_says_why() {
     let tmp = tempfile::tempdir().unwrap();
     let toml = unmappable_session(tmp.path());
-    let out = Command::new(KIWI)
-        .args(["run", "--json", "--session"])
-        .arg(&toml)
-        .output()
-        .unwrap();
-    assert_eq!(
-        out.status.code(),
-        Some(2),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let report = run_json_with_unusable(&toml);
     for e in report["episodes"].as_array().unwrap() {
         assert_eq!(e["verdict"], "unusable");
         let reasons = e["reasons"].to_string();

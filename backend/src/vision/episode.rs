@@ -36,7 +36,7 @@ use crate::vision::mapping::{MapperOptions, global_adjustment, reconstruct};
 use crate::vision::quality::{MapQuality, assess};
 use crate::vision::runs::{
     Conflict, RunBook, WitnessJudgement, conflict_reason, conflicts, judge_runs,
-    runs_joining_withdrawn, runs_to_withdraw, withdraw, witness_reason,
+    runs_joining_withdrawn, runs_to_withdraw, withdraw, witness_agrees, witness_reason,
 };
 
 /// Angle of one pixel at the centre of the 960 px X5 lens the mapper's defaults are tuned for.
@@ -740,13 +740,7 @@ fn withdraw_look_alikes(
         (conflicts.iter())
             .flat_map(|c| [b.frame_run[c.before], b.frame_run[c.after]])
             .flatten()
-            .filter(|&run| {
-                judged
-                    .get(run)
-                    .copied()
-                    .flatten()
-                    .is_some_and(|j| j.agrees())
-            })
+            .filter(|&run| witness_agrees(judged, run) == Some(true))
             .collect::<BTreeSet<usize>>()
     };
     let mut met = placed(&found, book, &judged);
@@ -848,13 +842,9 @@ fn around_witness(
     let judged = judge_runs(results, book, witnessed, depth);
     let left = conflicts(results, book, depth);
     let mut runs = runs_to_withdraw(&left, book, &judged);
-    runs.extend((runs_before..book.runs.len()).filter(|&r| {
-        judged
-            .get(r)
-            .copied()
-            .flatten()
-            .is_some_and(|j| !j.agrees())
-    }));
+    runs.extend(
+        (runs_before..book.runs.len()).filter(|&r| witness_agrees(&judged, r) == Some(false)),
+    );
     let why = |r: &[FrameLocalization], b: &RunBook, run| {
         witness_reason(b, &judged, run).unwrap_or_else(|| conflict_reason(r, b, &left, run))
     };

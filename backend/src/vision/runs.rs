@@ -287,8 +287,8 @@ fn start_weight(source: RelocalizationSource) -> u8 {
 /// Farthest a run's poses may lie from where an independent witness places the lens (median
 /// over the frames they share, in median map depths) and still agree with it: half the smallest
 /// look-alike offset measured where a look-alike run met a right one (0.13 depths, a kitchen's
-/// tiles), and 3-6 times the witness's own error (measured: docs/vision.md, "The other wrist
-/// as a witness").
+/// tiles); about 0.1 m in a room seen at 1.5 m, five times the witness's worst error measured
+/// (19 mm, kitchen 79: docs/vision.md, "The other wrist as a witness").
 pub const WITNESS_ALLOWANCE_DEPTHS: f64 = 0.065;
 /// Fewest frames a run must share with the witness to be judged by it: one or two frames of a
 /// witness can themselves be a stray pose; five at 30 Hz are a sixth of a second of agreement.
@@ -345,7 +345,7 @@ pub fn judge_runs(
 }
 
 /// Whether the witness places run `run` where it stands (`None`: not judged).
-fn witness_agrees(judged: &[Option<WitnessJudgement>], run: usize) -> Option<bool> {
+pub fn witness_agrees(judged: &[Option<WitnessJudgement>], run: usize) -> Option<bool> {
     judged.get(run).copied().flatten().map(|j| j.agrees())
 }
 
@@ -629,8 +629,9 @@ mod tests {
         assert_eq!(withdraw(&mut results, &mut book, &runs, why, &mut gone), 40);
     }
 
-    #[test]
-    fn a_run_that_joins_a_withdrawn_place_is_found() {
+    /// [`two_runs`] of 60 frames whose whole-map first run (frames 0..30) jumps 0.9 depths to
+    /// the window run and is withdrawn; with the withdrawn poses.
+    fn first_run_withdrawn() -> (Vec<FrameLocalization>, RunBook, Vec<Option<Pose>>) {
         use RelocalizationSource::{WholeMap, Window};
         let (mut results, mut book) = two_runs(60, 30, 0.9, WholeMap, Window);
         let found = conflicts(&results, &book, 1.0);
@@ -638,6 +639,13 @@ mod tests {
         let mut gone = vec![None; 60];
         let why = |r: &[FrameLocalization], b: &RunBook, run| conflict_reason(r, b, &found, run);
         withdraw(&mut results, &mut book, &runs, why, &mut gone);
+        (results, book, gone)
+    }
+
+    #[test]
+    fn a_run_that_joins_a_withdrawn_place_is_found() {
+        use RelocalizationSource::{WholeMap, Window};
+        let (mut results, mut book, gone) = first_run_withdrawn();
         // Later, frames 0..5 are posed at the same place again and frames 10..20 elsewhere.
         let again = book.open(5, WholeMap);
         let other = book.open(20, Window);
@@ -726,13 +734,8 @@ mod tests {
 
     #[test]
     fn a_run_the_witness_places_is_not_withdrawn_for_joining_a_withdrawn_pose() {
-        use RelocalizationSource::{WholeMap, Window};
-        let (mut results, mut book) = two_runs(60, 30, 0.9, WholeMap, Window);
-        let found = conflicts(&results, &book, 1.0);
-        let runs = runs_to_withdraw(&found, &book, &[]);
-        let mut gone = vec![None; 60];
-        let why = |r: &[FrameLocalization], b: &RunBook, run| conflict_reason(r, b, &found, run);
-        withdraw(&mut results, &mut book, &runs, why, &mut gone);
+        use RelocalizationSource::WholeMap;
+        let (mut results, mut book, gone) = first_run_withdrawn();
         let again = book.open(5, WholeMap);
         for i in 0..5 {
             results[i] = posed(i, 0.01 * i as f64 + 0.03, LocalizationStatus::Tracked);
