@@ -24,8 +24,16 @@
 //! the independent evidence. Where a front run and a rear run overlap and disagree by more than
 //! [`RUN_DISAGREEMENT_M`] (median over their common moments), the run that no other run of
 //! the other lens vouches for is withdrawn: a run confirmed by an independent relocalization of
-//! the other lens stands. When neither or both are vouched for, both are withdrawn (a frame
-//! without a pose is better than a wrong one). Withdrawn runs are listed in the summary.
+//! the other lens stands. When neither or both are vouched for, the pipeline's [`RunArbiter`]
+//! is asked. First each lens's frames are localized only around where the other lens places
+//! the wrist: the true place fits both lenses' views, a look-alike place only the view that
+//! repeats, so a lens whose frames fit both places (at least [`CROSS_FIT_FRACTION`] of the
+//! moments tried) while the other's fit only its own loses its run. Then a witness, if there
+//! is one (the wrist's front lens seen in the other wrist's front map, carried to the scene
+//! through that wrist's placement): the run it places where it stands (within
+//! [`RUN_DISAGREEMENT_M`]) is kept and the other withdrawn. When nothing decides, both are
+//! withdrawn (a frame without a pose is better than a wrong one). Withdrawn runs are listed in
+//! the summary, with the arbitration's counts.
 
 use serde::{Deserialize, Serialize};
 
@@ -80,6 +88,42 @@ pub struct WithdrawnRun {
     pub reason: String,
 }
 
+/// Evidence asked only where a front run and a rear run of the wrist disagree and no other run
+/// of the wrist tells which is right (module docs). Every answer costs a localization, so none
+/// is asked before it is needed.
+pub trait RunArbiter {
+    /// `lens`'s frames at the moments of `at` (the other lens's observations of the wrist, IMU
+    /// clock), localized only around where `at` places the wrist (guided matching, then
+    /// tracking): its observations of the wrist there, in time order; none where its view does
+    /// not fit that place.
+    fn localize_at(&mut self, lens: Source, at: &[PoseObservation]) -> Vec<PoseObservation>;
+
+    /// Observations of the wrist independent of both lenses' maps (the pipeline's: its front
+    /// lens seen in the other wrist's front map, [`observations_in_other_front_map`]), or
+    /// `None` when there is no such witness.
+    fn witness(&mut self) -> Option<Vec<PoseObservation>>;
+}
+
+/// Fewest of the moments tried at which a lens must fit the other lens's place to be said to
+/// fit there: at the right place guided matching finds nearly every frame (a few are lost to
+/// blur or a covered lens), at a wrong one it finds few or none.
+pub const CROSS_FIT_FRACTION: f64 = 0.5;
+
+/// What the arbitration between disagreeing runs did, when it was needed.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct Arbitration {
+    /// Disagreeing pairs of runs decided because one lens's frames also fit where the other
+    /// lens places the wrist and not the reverse (the view that fits both places repeats).
+    pub decided_by_cross_fit: usize,
+    /// Pairs the witness decided (it placed the wrist where one lens does, not the other).
+    pub decided_by_witness: usize,
+    /// Pairs nothing decided: both runs withdrawn.
+    pub undecided: usize,
+    /// Observations the witness gave, when it was asked.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub witness_observations: Option<usize>,
+}
+
 /// How many localizations became observations, per lens.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct ObservationCounts {
@@ -95,6 +139,10 @@ pub struct ObservationCounts {
     /// counted above).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub withdrawn_runs: Vec<WithdrawnRun>,
+    /// What decided between disagreeing runs, when nothing of the wrist's own runs could
+    /// ([`RunArbiter`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub arbitration: Option<Arbitration>,
 }
 
 /// Eq. 3 for one wrist: front and rear localizations (`map_from_cam` on the camera clock) to
@@ -109,6 +157,28 @@ pub fn body_observations(
     rear_calibration: &LensImuCalibration,
     exposure_centre_s: f64,
 ) -> (Vec<PoseObservation>, ObservationCounts) {
+    body_observations_arbitrated(
+        front,
+        rear,
+        reference,
+        front_calibration,
+        rear_calibration,
+        exposure_centre_s,
+        None,
+    )
+}
+
+/// [`body_observations`], with a [`RunArbiter`] asked when a front run and a rear run
+/// disagree and nothing of the wrist's own runs tells which is right.
+pub fn body_observations_arbitrated(
+    front: &[Localization],
+    rear: &[Localization],
+    reference: &SceneReference,
+    front_calibration: &LensImuCalibration,
+    rear_calibration: &LensImuCalibration,
+    exposure_centre_s: f64,
+    arbiter: Option<&mut dyn RunArbiter>,
+) -> (Vec<PoseObservation>, ObservationCounts) {
     let front_obs = lens_observations(front, |f| PoseObservation {
         t: f.t + front_calibration.time_shift_s + exposure_centre_s,
         source: Source::Front,
@@ -122,7 +192,7 @@ pub fn body_observations(
         scene_from_imu: apply(&reference.rear_metric, &r.map_from_cam)
             * rear_calibration.cam_from_imu,
     });
-    let withdrawn = cross_check(&front_obs, &rear_obs);
+    let (withdrawn, arbitration) = cross_check(&front_obs, &rear_obs, arbiter);
     let kept = |obs: &[RunObservation], source: Source| -> Vec<PoseObservation> {
         obs.iter()
             .filter(|o| !withdrawn.contains_key(&(source, o.run)))
@@ -138,6 +208,7 @@ pub fn body_observations(
         rear_frames: rear.len(),
         rear_observations: out.len() - front_observations,
         withdrawn_runs: withdrawn.values().cloned().collect(),
+        arbitration,
     };
     out.sort_by(|a, b| a.t.total_cmp(&b.t));
     (out, counts)
@@ -176,6 +247,45 @@ pub fn front_poses_from_rear(
         .collect()
 }
 
+/// Eq. 3 solved for either lens: its `map_from_cam` in its own (unscaled) map at each of
+/// `times` (camera clock, s) where `at` (observations of the wrist, IMU clock, time order)
+/// places the wrist (the observation nearest on the IMU clock, within [`PAIR_TOLERANCE_S`]);
+/// `None` where `at` has none. `exposure_centre_s` is the one `at` was made with.
+pub fn lens_poses_at(
+    times: &[f64],
+    at: &[PoseObservation],
+    lens: Source,
+    reference: &SceneReference,
+    calibration: &LensImuCalibration,
+    exposure_centre_s: f64,
+) -> Vec<Option<Pose>> {
+    let at: Vec<RunObservation> = (at.iter())
+        .map(|&observation| RunObservation {
+            run: 0,
+            observation,
+        })
+        .collect();
+    let imu_from_cam = calibration.cam_from_imu.inverse();
+    let (map_from_metric, metric_from_scene) = match lens {
+        Source::Front => (
+            reference.front_metric.inverse(),
+            reference.scene_from_front_map.inverse(),
+        ),
+        Source::Rear => (reference.rear_metric.inverse(), Pose::identity()),
+    };
+    let mut j = 0usize;
+    times
+        .iter()
+        .map(|&t_cam| {
+            let t = t_cam + calibration.time_shift_s + exposure_centre_s;
+            let nearest = nearest_at(&at, &mut j, t)?;
+            let metric_from_cam =
+                metric_from_scene * nearest.observation.scene_from_imu * imu_from_cam;
+            Some(apply(&map_from_metric, &metric_from_cam))
+        })
+        .collect()
+}
+
 /// A wrist's rear lens placed through its front lens seen in another wrist's front map: its
 /// `map_from_cam` in the (unscaled) rear map at each of `rear_times` (camera clock, s), from the
 /// front frame nearest on the IMU clock (within [`PAIR_TOLERANCE_S`]) localized in the map
@@ -190,13 +300,7 @@ pub fn rear_poses_from_other_front_map(
     front_calibration: &LensImuCalibration,
     rear_calibration: &LensImuCalibration,
 ) -> Vec<Option<Pose>> {
-    let front_obs = lens_observations(front_in_other_map, |r| PoseObservation {
-        t: r.t + front_calibration.time_shift_s,
-        source: Source::Front,
-        scene_from_imu: other.scene_from_front_map
-            * apply(&other.front_metric, &r.map_from_cam)
-            * front_calibration.cam_from_imu,
-    });
+    let front_obs = other_front_map_observations(front_in_other_map, other, front_calibration, 0.0);
     let rear_map_from_scene = other.rear_metric.inverse();
     let imu_from_rear_cam = rear_calibration.cam_from_imu.inverse();
     let mut j = 0usize;
@@ -209,6 +313,43 @@ pub fn rear_poses_from_other_front_map(
             Some(apply(&rear_map_from_scene, &scene_from_cam))
         })
         .collect()
+}
+
+/// Eq. 3 for a wrist's front lens seen in another wrist's front map (`front_in_other_map`,
+/// `map_from_cam` of this wrist's front lens in that map): `scene_from_imu` observations on the
+/// IMU clock through that map's metric recovery and placement (`other`, the map's wrist's
+/// reference) and this wrist's calibration, in time order. The [`RunArbiter::witness`] of the
+/// pipeline: another map, another placement, the same scene frame.
+pub fn observations_in_other_front_map(
+    front_in_other_map: &[Localization],
+    other: &SceneReference,
+    front_calibration: &LensImuCalibration,
+    exposure_centre_s: f64,
+) -> Vec<PoseObservation> {
+    other_front_map_observations(
+        front_in_other_map,
+        other,
+        front_calibration,
+        exposure_centre_s,
+    )
+    .into_iter()
+    .map(|o| o.observation)
+    .collect()
+}
+
+fn other_front_map_observations(
+    front_in_other_map: &[Localization],
+    other: &SceneReference,
+    front_calibration: &LensImuCalibration,
+    exposure_centre_s: f64,
+) -> Vec<RunObservation> {
+    lens_observations(front_in_other_map, |r| PoseObservation {
+        t: r.t + front_calibration.time_shift_s + exposure_centre_s,
+        source: Source::Front,
+        scene_from_imu: other.scene_from_front_map
+            * apply(&other.front_metric, &r.map_from_cam)
+            * front_calibration.cam_from_imu,
+    })
 }
 
 /// The observation of `obs` (sorted by time) nearest `t` within [`PAIR_TOLERANCE_S`]; `j` is
@@ -261,11 +402,93 @@ fn lens_observations(
     out
 }
 
-/// The runs to withdraw, keyed by (lens, run), with why (module docs).
+/// Median distance (m) from the observations of `run` in `obs` to the witness's observation of
+/// the same moment, over at least [`MIN_RUN_PAIRS`] moments; `None` with fewer.
+fn distance_to_witness(
+    obs: &[RunObservation],
+    run: usize,
+    witness: &[RunObservation],
+) -> Option<f64> {
+    let mut j = 0usize;
+    let mut d: Vec<f64> = (obs.iter().filter(|o| o.run == run))
+        .filter_map(|o| {
+            let w = nearest_at(witness, &mut j, o.observation.t)?;
+            let d = (o.observation.scene_from_imu.translation.vector
+                - w.observation.scene_from_imu.translation.vector)
+                .norm();
+            d.is_finite().then_some(d)
+        })
+        .collect();
+    if d.len() < MIN_RUN_PAIRS {
+        return None;
+    }
+    d.sort_by(f64::total_cmp);
+    Some(d[d.len() / 2])
+}
+
+/// Whether a lens's frames, localized around where the other lens places the wrist
+/// ([`RunArbiter::localize_at`]), fit that place.
+#[derive(Debug, Clone, Copy)]
+struct CrossFit {
+    /// Moments tried.
+    tried: usize,
+    /// Moments the lens was localized within [`RUN_DISAGREEMENT_M`] of the other lens's place.
+    found: usize,
+}
+
+impl CrossFit {
+    /// Compare `found` (the lens's observations) with `at` (the other lens's, tried).
+    fn of(found: &[PoseObservation], at: &[PoseObservation]) -> Self {
+        let at: Vec<RunObservation> = (at.iter())
+            .map(|&observation| RunObservation {
+                run: 0,
+                observation,
+            })
+            .collect();
+        let mut j = 0usize;
+        let near = (found.iter())
+            .filter(|o| {
+                nearest_at(&at, &mut j, o.t).is_some_and(|a| {
+                    (o.scene_from_imu.translation.vector
+                        - a.observation.scene_from_imu.translation.vector)
+                        .norm()
+                        <= RUN_DISAGREEMENT_M
+                })
+            })
+            .count();
+        Self {
+            tried: at.len(),
+            found: near,
+        }
+    }
+
+    fn fits(self) -> bool {
+        self.found >= MIN_RUN_PAIRS && self.found as f64 >= CROSS_FIT_FRACTION * self.tried as f64
+    }
+}
+
+/// The observations of `run` in `obs` between `start` and `end` (IMU clock, s).
+fn run_between(
+    obs: &[RunObservation],
+    run: usize,
+    (start, end): (f64, f64),
+) -> Vec<PoseObservation> {
+    (obs.iter())
+        .filter(|o| o.run == run && (start..=end).contains(&o.observation.t))
+        .map(|o| o.observation)
+        .collect()
+}
+
+/// The runs to withdraw, keyed by (lens, run), with why, and what the arbiter did if it was
+/// asked (module docs).
 fn cross_check(
     front: &[RunObservation],
     rear: &[RunObservation],
-) -> std::collections::BTreeMap<(Source, usize), WithdrawnRun> {
+    mut arbiter: Option<&mut dyn RunArbiter>,
+) -> (
+    std::collections::BTreeMap<(Source, usize), WithdrawnRun>,
+    Option<Arbitration>,
+) {
     use std::collections::{BTreeMap, BTreeSet};
     // Position disagreements of every front–rear pair of one moment, per pair of runs.
     let mut distances: BTreeMap<(usize, usize), Vec<f64>> = BTreeMap::new();
@@ -306,6 +529,9 @@ fn cross_check(
         )
     };
     let mut out = BTreeMap::new();
+    // The witness's observations (numbered as one run), once asked.
+    let mut witnessed: Option<Vec<RunObservation>> = None;
+    let mut arbitration: Option<Arbitration> = None;
     for (&(f, r), &median) in &medians {
         if median <= RUN_DISAGREEMENT_M {
             continue;
@@ -345,12 +571,121 @@ fn cross_check(
             (false, true) => withdraw(Source::Front, f, front, vouched_against(Source::Front)),
             (true, false) => withdraw(Source::Rear, r, rear, vouched_against(Source::Rear)),
             _ => {
-                withdraw(Source::Front, f, front, undecided.clone());
-                withdraw(Source::Rear, r, rear, undecided);
+                let Some(arbiter) = arbiter.as_deref_mut() else {
+                    withdraw(Source::Front, f, front, undecided.clone());
+                    withdraw(Source::Rear, r, rear, undecided);
+                    continue;
+                };
+                let record = arbitration.get_or_insert_with(Arbitration::default);
+                // First each lens at the other's place: the true place fits both lenses' views,
+                // a look-alike place only the view that repeats.
+                let (front_span, rear_span) = (span(front, f), span(rear, r));
+                let at_front = run_between(front, f, (rear_span.0, rear_span.1));
+                let at_rear = run_between(rear, r, (front_span.0, front_span.1));
+                let rear_there =
+                    CrossFit::of(&arbiter.localize_at(Source::Rear, &at_front), &at_front);
+                let front_there =
+                    CrossFit::of(&arbiter.localize_at(Source::Front, &at_rear), &at_rear);
+                let fits_both = |source: Source, kept: CrossFit, withdrawn: CrossFit| {
+                    format!(
+                        "the {} lens disagrees with it by {median:.3} m (median); this lens's own \
+                         frames also fit where the {} lens places the wrist ({} of {} moments \
+                         tried), the {} lens's do not fit where this run places it ({} of {}): \
+                         this lens's view repeats and the run was localized at a look-alike place",
+                        other(source),
+                        other(source),
+                        withdrawn.found,
+                        withdrawn.tried,
+                        other(source),
+                        kept.found,
+                        kept.tried,
+                    )
+                };
+                match (front_there.fits(), rear_there.fits()) {
+                    (false, true) => {
+                        record.decided_by_cross_fit += 1;
+                        let why = fits_both(Source::Rear, front_there, rear_there);
+                        withdraw(Source::Rear, r, rear, why);
+                        continue;
+                    }
+                    (true, false) => {
+                        record.decided_by_cross_fit += 1;
+                        let why = fits_both(Source::Front, rear_there, front_there);
+                        withdraw(Source::Front, f, front, why);
+                        continue;
+                    }
+                    _ => {}
+                }
+                // Then the witness, asked once, as the third vote.
+                if witnessed.is_none() {
+                    let obs: Vec<RunObservation> = (arbiter.witness().into_iter().flatten())
+                        .map(|observation| RunObservation {
+                            run: 0,
+                            observation,
+                        })
+                        .collect();
+                    record.witness_observations = Some(obs.len());
+                    witnessed = Some(obs);
+                }
+                let placed = |obs: &[RunObservation], run: usize| {
+                    let d = distance_to_witness(obs, run, witnessed.as_deref()?)?;
+                    Some((d, d <= RUN_DISAGREEMENT_M))
+                };
+                let placed_by_witness = |source: Source, d_kept: f64, d_withdrawn: f64| {
+                    format!(
+                        "the {} lens disagrees with it by {median:.3} m (median) and the wrist's \
+                         front lens seen in the other wrist's front map places the wrist \
+                         {d_withdrawn:.3} m from it and {d_kept:.3} m from the {} lens: it was \
+                         localized at a look-alike place",
+                        other(source),
+                        other(source)
+                    )
+                };
+                match (placed(front, f), placed(rear, r)) {
+                    (Some((df, true)), Some((dr, false))) => {
+                        record.decided_by_witness += 1;
+                        withdraw(
+                            Source::Rear,
+                            r,
+                            rear,
+                            placed_by_witness(Source::Rear, df, dr),
+                        );
+                    }
+                    (Some((df, false)), Some((dr, true))) => {
+                        record.decided_by_witness += 1;
+                        withdraw(
+                            Source::Front,
+                            f,
+                            front,
+                            placed_by_witness(Source::Front, dr, df),
+                        );
+                    }
+                    (df, dr) => {
+                        record.undecided += 1;
+                        let show = |d: Option<(f64, bool)>| match d {
+                            Some((d, _)) => format!("{d:.3} m"),
+                            None => "too few common frames".into(),
+                        };
+                        let why = format!(
+                            "{undecided} (each lens's frames fit the other's place or neither \
+                             does: front {} of {}, rear {} of {} moments; the wrist's front lens \
+                             seen in the other wrist's front map does not tell either: front {}, \
+                             rear {})",
+                            front_there.found,
+                            front_there.tried,
+                            rear_there.found,
+                            rear_there.tried,
+                            show(df),
+                            show(dr)
+                        );
+                        withdraw(Source::Front, f, front, why.clone());
+                        withdraw(Source::Rear, r, rear, why);
+                    }
+                }
             }
         }
     }
-    out
+    (out, arbitration)
 }
 
 #[cfg(test)]
@@ -558,6 +893,187 @@ mod tests {
         let counts = observe(&front, &rear);
         assert_eq!(counts.withdrawn_runs.len(), 2);
         assert_eq!(counts.front_observations + counts.rear_observations, 0);
+    }
+
+    /// An arbiter over the test's streams (identity references: a pose is the scene's): each
+    /// lens's view fits the places `front_fits` / `rear_fits` (sideways offsets from the
+    /// wrist's path), and the witness is `witness` seen as a front stream.
+    struct Arbiter<'a> {
+        front_fits: Vec<Vector3<f64>>,
+        rear_fits: Vec<Vector3<f64>>,
+        witness: Option<&'a [Localization]>,
+        localized: usize,
+        witnessed: usize,
+    }
+
+    impl<'a> Arbiter<'a> {
+        fn new(front_fits: &[f64], rear_fits: &[f64], witness: Option<&'a [Localization]>) -> Self {
+            let places = |v: &[f64]| v.iter().map(|&y| Vector3::new(0.0, y, 0.0)).collect();
+            Self {
+                front_fits: places(front_fits),
+                rear_fits: places(rear_fits),
+                witness,
+                localized: 0,
+                witnessed: 0,
+            }
+        }
+    }
+
+    impl RunArbiter for Arbiter<'_> {
+        fn localize_at(&mut self, lens: Source, at: &[PoseObservation]) -> Vec<PoseObservation> {
+            self.localized += 1;
+            let fits = match lens {
+                Source::Front => &self.front_fits,
+                Source::Rear => &self.rear_fits,
+            };
+            (at.iter())
+                .filter(|o| {
+                    let offset =
+                        o.scene_from_imu.translation.vector - Vector3::new(0.5 * o.t, 0.0, 1.0);
+                    fits.iter().any(|p| (offset - p).norm() < 0.05)
+                })
+                .map(|o| PoseObservation { source: lens, ..*o })
+                .collect()
+        }
+
+        fn witness(&mut self) -> Option<Vec<PoseObservation>> {
+            self.witnessed += 1;
+            let c = calibration();
+            (self.witness)
+                .map(|w| observations_in_other_front_map(w, &identity_reference(), &c, 0.0))
+        }
+    }
+
+    fn arbitrate(
+        front: &[Localization],
+        rear: &[Localization],
+        arbiter: &mut Arbiter<'_>,
+    ) -> ObservationCounts {
+        let c = calibration();
+        let arbiter: &mut dyn RunArbiter = arbiter;
+        body_observations_arbitrated(
+            front,
+            rear,
+            &identity_reference(),
+            &c,
+            &c,
+            0.0,
+            Some(arbiter),
+        )
+        .1
+    }
+
+    /// Two lenses that disagree over the whole episode, where one lens's view repeats (it fits
+    /// both places) and the other's does not: the run of the lens that repeats is withdrawn,
+    /// whichever lens it is, without asking the witness.
+    #[test]
+    fn the_lens_whose_view_fits_both_places_is_withdrawn() {
+        let right = stream(60, |_| Some(Vector3::zeros()));
+        let look_alike = stream(60, |_| Some(Vector3::new(0.0, 0.3, 0.0)));
+        let (unique, repeating) = ([0.0].as_slice(), [0.0, 0.3].as_slice());
+        for repeats in [Source::Rear, Source::Front] {
+            let (front, rear, mut arbiter) = match repeats {
+                Source::Rear => (&right, &look_alike, Arbiter::new(unique, repeating, None)),
+                Source::Front => (&look_alike, &right, Arbiter::new(repeating, unique, None)),
+            };
+            let counts = arbitrate(front, rear, &mut arbiter);
+            assert_eq!(
+                counts.withdrawn_runs.len(),
+                1,
+                "{:?}",
+                counts.withdrawn_runs
+            );
+            let run = &counts.withdrawn_runs[0];
+            assert_eq!(run.lens, repeats.name());
+            assert!(run.reason.contains("(60 of 60 moments"), "{}", run.reason);
+            assert_eq!(counts.front_observations + counts.rear_observations, 60);
+            let record = counts.arbitration.expect("arbitrated");
+            assert_eq!((record.decided_by_cross_fit, record.undecided), (1, 0));
+            assert_eq!((arbiter.localized, arbiter.witnessed), (2, 0));
+            assert_eq!(record.witness_observations, None);
+        }
+    }
+
+    /// Where both views repeat (or neither fits the other's place), the witness, which places
+    /// the wrist where one of them does (within a few centimetres), keeps that lens's run and
+    /// withdraws the other's.
+    #[test]
+    fn a_witness_keeps_the_lens_it_places() {
+        let right = stream(60, |_| Some(Vector3::zeros()));
+        let look_alike = stream(60, |_| Some(Vector3::new(0.0, 0.3, 0.0)));
+        let witness = stream(60, |i| {
+            (i % 10 != 3).then(|| Vector3::new(0.02, -0.01 * (i % 2) as f64, 0.0))
+        });
+        for (front, rear, withdrawn) in [
+            (&right, &look_alike, "rear"),
+            (&look_alike, &right, "front"),
+        ] {
+            for fits in [[0.0, 0.3].as_slice(), &[]] {
+                let mut arbiter = Arbiter::new(fits, fits, Some(&witness));
+                let counts = arbitrate(front, rear, &mut arbiter);
+                assert_eq!(
+                    counts.withdrawn_runs.len(),
+                    1,
+                    "{:?}",
+                    counts.withdrawn_runs
+                );
+                let run = &counts.withdrawn_runs[0];
+                assert_eq!(run.lens, withdrawn);
+                assert!(
+                    run.reason.contains("other wrist's front map"),
+                    "{}",
+                    run.reason
+                );
+                assert_eq!(counts.front_observations + counts.rear_observations, 60);
+                let record = counts.arbitration.expect("arbitrated");
+                assert_eq!(record.witness_observations, Some(54));
+                assert_eq!((record.decided_by_witness, record.undecided), (1, 0));
+                assert_eq!(arbiter.witnessed, 1);
+            }
+        }
+    }
+
+    /// A witness that places neither lens, places both, or has nothing to say leaves both runs
+    /// withdrawn, and the reason says what was found.
+    #[test]
+    fn a_witness_that_places_neither_or_both_decides_nothing() {
+        let front = stream(60, |_| Some(Vector3::zeros()));
+        let rear = stream(60, |_| Some(Vector3::new(0.0, 0.3, 0.0)));
+        let between = stream(60, |_| Some(Vector3::new(0.0, 0.15, 0.0)));
+        let elsewhere = stream(60, |_| Some(Vector3::new(1.0, 0.0, 0.0)));
+        let lost = stream(60, |i| (i < 3).then(Vector3::zeros));
+        for witness in [
+            Some(&elsewhere[..]),
+            Some(&lost[..]),
+            Some(&between[..]),
+            None,
+        ] {
+            let mut arbiter = Arbiter::new(&[0.0, 0.3], &[0.0, 0.3], witness);
+            let counts = arbitrate(&front, &rear, &mut arbiter);
+            assert_eq!(
+                counts.withdrawn_runs.len(),
+                2,
+                "{:?}",
+                counts.withdrawn_runs
+            );
+            let why = &counts.withdrawn_runs[0].reason;
+            assert!(
+                why.contains("does not tell either") && why.contains("front 60 of 60"),
+                "{why}"
+            );
+            assert_eq!(counts.arbitration.map(|u| u.undecided), Some(1));
+        }
+    }
+
+    /// Lenses that agree never ask the arbiter: every answer costs a localization.
+    #[test]
+    fn lenses_that_agree_do_not_ask_the_arbiter() {
+        let front = stream(60, |_| Some(Vector3::zeros()));
+        let rear = stream(60, |_| Some(Vector3::new(0.01, 0.0, 0.0)));
+        let mut arbiter = Arbiter::new(&[0.0], &[0.0], Some(&front));
+        let counts = arbitrate(&front, &rear, &mut arbiter);
+        assert_eq!((arbiter.localized, arbiter.witnessed), (0, 0));
+        assert!(counts.arbitration.is_none() && counts.withdrawn_runs.is_empty());
     }
 
     /// A disagreement below the bound (a few centimetres: map and placement errors) withdraws

@@ -55,6 +55,14 @@ impl Side {
             Self::Right => "right",
         }
     }
+
+    /// The operator's other wrist.
+    pub fn other(self) -> Self {
+        match self {
+            Self::Left => Self::Right,
+            Self::Right => Self::Left,
+        }
+    }
 }
 
 /// The tool a wrist carries.

@@ -12,7 +12,9 @@
 //! Per episode, once the maps are frozen: `sync` → `localize-<wrist>-<lens>` (four streams, no map
 //! updates; after the map episode a front stream also starts from the poses its wrist's rear
 //! lens gives, so it waits for that stream, the metric maps and the placement) →
-//! `observations-<wrist>` (eq. 3) → `fusion-<wrist>` (eq. 4) → `gripper-<wrist>` →
+//! `observations-<wrist>` (eq. 3; it reads, optionally, the other wrist's front map, metric
+//! recovery and placement, the third vote where its two lenses disagree:
+//! [`other_front_map_deps`]) → `fusion-<wrist>` (eq. 4) → `gripper-<wrist>` →
 //! `outputs` (tool tip on the session timeline, TUM files, `quality.json`). With a head camera,
 //! `head` (the hat marker in both rear streams, fused into the head's track, and the head
 //! camera's poses) runs after both wrists' fusion and before `outputs`, which publishes it.
@@ -188,19 +190,31 @@ pub struct StageNode {
 /// ([`crate::vision::episode::Witness`]). Empty for the map wrist, whose rear stream built the
 /// map it is localized in.
 pub fn rear_witness_deps(ctx: &SessionContext, side: Side) -> Vec<StageId> {
-    let map_side = ctx.map_side();
-    if side == map_side || !ctx.wrists.contains_key(&map_side) {
+    if side == ctx.map_side() {
+        return Vec::new();
+    }
+    other_front_map_deps(ctx, side)
+}
+
+/// The stages through which the other wrist's front map places the front lens of `side` in
+/// the scene: that wrist's front map, its metric recovery, the rear map's and that wrist's
+/// placement. The witness of `side`'s rear runs in the mapping episode ([`rear_witness_deps`])
+/// and of its body observations where its two lenses disagree
+/// ([`crate::observations::SceneWitness`]). Empty with one wrist.
+pub fn other_front_map_deps(ctx: &SessionContext, side: Side) -> Vec<StageId> {
+    let other = side.other();
+    if !ctx.wrists.contains_key(&other) {
         return Vec::new();
     }
     vec![
         id_of(&StageKind::Map {
-            map: MapName::Front(map_side),
+            map: MapName::Front(other),
         }),
         id_of(&StageKind::Metric {
-            map: MapName::Front(map_side),
+            map: MapName::Front(other),
         }),
         id_of(&StageKind::Metric { map: MapName::Rear }),
-        id_of(&StageKind::Placement { side: map_side }),
+        id_of(&StageKind::Placement { side: other }),
     ]
 }
 
@@ -326,13 +340,18 @@ pub fn build(ctx: &SessionContext, episodes: &[String]) -> Vec<StageNode> {
             side,
             lens: Lens::Rear,
         } if *episode == map_ep => rear_witness_deps(ctx, *side),
+        // Where a wrist's two lenses disagree, the other wrist's front map is the third vote.
+        StageKind::Observations { side, .. } => other_front_map_deps(ctx, *side),
         StageKind::Outputs { episode } => outputs_optional_deps(ctx, episode),
         _ => Vec::new(),
     };
     let mut push = |kind: StageKind, deps: Vec<StageId>| {
         let id = id_of(&kind);
         if !nodes.iter().any(|n| n.id == id) {
-            let optional = optional_of(&kind);
+            // A stage the node needs anyway is not one it can do without.
+            let optional: Vec<StageId> = (optional_of(&kind).into_iter())
+                .filter(|o| !deps.contains(o))
+                .collect();
             let mut deps = deps;
             for o in &optional {
                 if !deps.contains(o) {
@@ -434,6 +453,8 @@ pub fn build(ctx: &SessionContext, episodes: &[String]) -> Vec<StageNode> {
                     episode: episode.clone(),
                     side,
                 },
+                // The maps: where the two lenses disagree, each is tried where the other
+                // places the wrist.
                 vec![
                     id_of(&localize(episode, side, Lens::Front)),
                     id_of(&localize(episode, side, Lens::Rear)),
@@ -442,6 +463,10 @@ pub fn build(ctx: &SessionContext, episodes: &[String]) -> Vec<StageNode> {
                     }),
                     id_of(&StageKind::Metric { map: MapName::Rear }),
                     id_of(&StageKind::Placement { side }),
+                    id_of(&StageKind::Map {
+                        map: MapName::Front(side),
+                    }),
+                    id_of(&StageKind::Map { map: MapName::Rear }),
                 ],
             );
             push(

@@ -27,15 +27,17 @@ use crate::formats::tables::{
     Localization, read_fused, read_localizations, read_observations, write_fused,
     write_observations,
 };
-use crate::fusion::{FusionConfig, fuse, visual_sigma_from_disagreement};
+use crate::fusion::{FusionConfig, PoseObservation, Source, fuse, visual_sigma_from_disagreement};
 use crate::metric::MetricConfig;
 use crate::observations::{
-    SceneReference, body_observations, front_poses_from_rear, rear_poses_from_other_front_map,
+    RunArbiter, SceneReference, body_observations, body_observations_arbitrated,
+    front_poses_from_rear, lens_poses_at, observations_in_other_front_map,
+    rear_poses_from_other_front_map,
 };
 use crate::placement::PlacementConfig;
 use crate::vision::episode::{
-    LensStream, Witness, build_map_with, localize_stream, localize_stream_with_witness,
-    write_poses_csv,
+    LensStream, Witness, build_map_with, localize_around, localize_stream,
+    localize_stream_with_witness, write_poses_csv,
 };
 use crate::vision::localize::LocalizerOptions;
 use crate::vision::map::VisualMap;
@@ -801,39 +803,188 @@ pub fn rear_witnessed(ctx: &SessionContext, episode: &str, side: Side, lens: Len
 /// the rear map through that map's metric recovery and placement
 /// ([`rear_poses_from_other_front_map`]).
 fn rear_witness(env: &StageEnv<'_>, side: Side, rear_times: &[f64]) -> Result<Vec<Option<Pose>>> {
-    let ctx = env.ctx;
-    let map_side = ctx.map_side();
-    let map_ep = ctx.session.map_episode.clone();
+    let map_ep = env.ctx.session.map_episode.clone();
+    let rows = front_in_other_front_map(env, &map_ep, side, "the witness of the rear lens's runs")?;
+    let w = wrist(env.ctx, side)?;
+    let other = scene_reference(env.ctx, side.other())?;
+    Ok(rear_poses_from_other_front_map(
+        rear_times, &rows, &other, &w.front, &w.rear,
+    ))
+}
+
+/// The front stream of `side` in `episode` localized in the other wrist's front map (`why`
+/// says what for, in the log).
+fn front_in_other_front_map(
+    env: &StageEnv<'_>,
+    episode: &str,
+    side: Side,
+    why: &str,
+) -> Result<Vec<Localization>> {
+    let other = side.other();
     let map = VisualMap::load(
         &env.dep_dir(&StageKind::Map {
-            map: MapName::Front(map_side),
+            map: MapName::Front(other),
         })
         .join(MAP_FILE),
     )?;
-    let front = open_stream(ctx, &map_ep, side, Lens::Front)?;
+    let front = open_stream(env.ctx, episode, side, Lens::Front)?;
     let (results, summary) =
         localize_stream(&map, &front, &LocalizerOptions::default(), &mut |_, _| {})?;
     tracing::info!(
-        "{map_ep}/{}: the front lens has a pose at {} of {} frames in the {} front map \
-         (the witness of the rear lens's runs)",
+        "{episode}/{}: the front lens has a pose at {} of {} frames in the {} front map ({why})",
         side.camera_name(),
         summary.localized,
         summary.frames,
-        map_side.camera_name()
+        other.camera_name()
     );
-    let rows: Vec<Localization> = results
+    Ok(results
         .iter()
         .map(|r| Localization {
             t: r.t,
             valid: r.map_from_cam.is_some(),
             map_from_cam: r.map_from_cam.unwrap_or_else(Pose::identity),
         })
-        .collect();
-    let w = wrist(ctx, side)?;
-    let other = scene_reference(ctx, map_side)?;
-    Ok(rear_poses_from_other_front_map(
-        rear_times, &rows, &other, &w.front, &w.rear,
-    ))
+        .collect())
+}
+
+/// The pipeline's [`RunArbiter`] for one wrist in one episode: its lenses' frames localized
+/// around where the other lens places the wrist, and its front lens seen in the other wrist's
+/// front map. Evidence that cannot be made is logged and counts as none.
+struct StageArbiter<'a, 'e> {
+    env: &'a StageEnv<'e>,
+    episode: &'a str,
+    side: Side,
+    reference: SceneReference,
+    exposure_centre_s: f64,
+    /// Whether the other wrist's front map, metric recovery and placement are there.
+    witnessed: bool,
+}
+
+impl StageArbiter<'_, '_> {
+    fn try_localize_at(&self, lens: Lens, at: &[PoseObservation]) -> Result<Vec<PoseObservation>> {
+        let (ctx, side) = (self.env.ctx, self.side);
+        let w = wrist(ctx, side)?;
+        let (source, calibration) = match lens {
+            Lens::Front => (Source::Front, &w.front),
+            Lens::Rear => (Source::Rear, &w.rear),
+        };
+        let map = VisualMap::load(
+            &(self.env)
+                .dep_dir(&StageKind::Map {
+                    map: MapName::for_lens(side, lens),
+                })
+                .join(MAP_FILE),
+        )?;
+        let mut stream = open_stream(ctx, self.episode, side, lens)?;
+        let times: Vec<f64> = stream.frames.iter().map(|f| f.t).collect();
+        let around = lens_poses_at(
+            &times,
+            at,
+            source,
+            &self.reference,
+            calibration,
+            self.exposure_centre_s,
+        );
+        let keep: Vec<usize> = (0..around.len()).filter(|&i| around[i].is_some()).collect();
+        if keep.is_empty() {
+            return Ok(Vec::new());
+        }
+        let around: Vec<Option<Pose>> = keep.iter().map(|&i| around[i]).collect();
+        stream.select(&keep)?;
+        let results = localize_around(&map, &stream, &LocalizerOptions::default(), &around)?;
+        let rows: Vec<Localization> = (results.iter())
+            .map(|r| Localization {
+                t: r.t,
+                valid: r.map_from_cam.is_some(),
+                map_from_cam: r.map_from_cam.unwrap_or_else(Pose::identity),
+            })
+            .collect();
+        let (front, rear) = match lens {
+            Lens::Front => (rows.as_slice(), &[][..]),
+            Lens::Rear => (&[][..], rows.as_slice()),
+        };
+        let (obs, _) = body_observations(
+            front,
+            rear,
+            &self.reference,
+            &w.front,
+            &w.rear,
+            self.exposure_centre_s,
+        );
+        tracing::info!(
+            "{}/{}: the {} lens localized at {} of {} moments around where the other lens \
+             places the wrist",
+            self.episode,
+            side.camera_name(),
+            lens.name(),
+            obs.len(),
+            keep.len()
+        );
+        Ok(obs)
+    }
+}
+
+impl RunArbiter for StageArbiter<'_, '_> {
+    fn localize_at(&mut self, lens: Source, at: &[PoseObservation]) -> Vec<PoseObservation> {
+        let lens = match lens {
+            Source::Front => Lens::Front,
+            Source::Rear => Lens::Rear,
+        };
+        self.try_localize_at(lens, at)
+            .map_err(|e| {
+                tracing::warn!(
+                    "{}/{}: the {} lens could not be tried where the other lens places the \
+                     wrist ({e})",
+                    self.episode,
+                    self.side.camera_name(),
+                    lens.name()
+                );
+            })
+            .unwrap_or_default()
+    }
+
+    fn witness(&mut self) -> Option<Vec<PoseObservation>> {
+        if !self.witnessed {
+            return None;
+        }
+        observation_witness(self.env, self.episode, self.side, self.exposure_centre_s)
+    }
+}
+
+/// The third vote where the two lenses of `side` disagree in `episode`: its front lens seen in
+/// the other wrist's front map, as body observations through that wrist's placement; `None`
+/// (with a warning) when it cannot be computed.
+fn observation_witness(
+    env: &StageEnv<'_>,
+    episode: &str,
+    side: Side,
+    exposure_centre_s: f64,
+) -> Option<Vec<PoseObservation>> {
+    let make = || -> Result<Vec<PoseObservation>> {
+        let rows = front_in_other_front_map(
+            env,
+            episode,
+            side,
+            "the third vote where its front and rear lenses disagree",
+        )?;
+        let w = wrist(env.ctx, side)?;
+        let other = scene_reference(env.ctx, side.other())?;
+        Ok(observations_in_other_front_map(
+            &rows,
+            &other,
+            &w.front,
+            exposure_centre_s,
+        ))
+    };
+    make()
+        .map_err(|e| {
+            tracing::warn!(
+                "{episode}/{}: the other wrist's front map could not witness where the wrist \
+                 is ({e}); disagreeing runs are judged without it",
+                side.camera_name()
+            );
+        })
+        .ok()
 }
 
 fn run_localize(env: &StageEnv<'_>, episode: &str, side: Side, lens: Lens) -> Result<()> {
@@ -1071,7 +1222,24 @@ fn run_observations(env: &StageEnv<'_>, episode: &str, side: Side) -> Result<()>
     let rear = localizations_of(env, episode, side, Lens::Rear)?;
     let reference = scene_reference(env.ctx, side)?;
     let centre = exposure_centre_delay(env.ctx, episode, w)?;
-    let (obs, counts) = body_observations(&front, &rear, &reference, &w.front, &w.rear, centre);
+    let witness_deps = super::graph::other_front_map_deps(env.ctx, side);
+    let mut arbiter = StageArbiter {
+        env,
+        episode,
+        side,
+        reference,
+        exposure_centre_s: centre,
+        witnessed: !witness_deps.is_empty() && env.available(&witness_deps),
+    };
+    let (obs, counts) = body_observations_arbitrated(
+        &front,
+        &rear,
+        &reference,
+        &w.front,
+        &w.rear,
+        centre,
+        Some(&mut arbiter),
+    );
     if obs.is_empty() && !counts.withdrawn_runs.is_empty() {
         let why: Vec<String> = counts
             .withdrawn_runs

@@ -433,6 +433,9 @@ pub struct LocalizeSummary {
     /// (runs begun by guided matching there, and what tracking carried from there).
     #[serde(default)]
     pub found_around_witness: usize,
+    /// Why the witness, asked, could not be computed (the runs were judged without it).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub witness_unavailable: Option<String>,
 }
 
 /// Summarize per-frame results.
@@ -467,6 +470,7 @@ pub fn summarize(results: &[FrameLocalization], seconds: f64) -> LocalizeSummary
         from_other_lens: 0,
         kept_by_witness: 0,
         found_around_witness: 0,
+        witness_unavailable: None,
     }
 }
 
@@ -615,6 +619,7 @@ pub fn localize_stream_with_witness(
         .count();
     summary.kept_by_witness = look.kept_by_witness;
     summary.found_around_witness = found_around_witness;
+    summary.witness_unavailable = look.witness_unavailable;
     summary.relocalization_ms_per_attempt = 1e3 * attempt_s / attempts.max(1) as f64;
     summary.relocalization_attempts_per_lost_second = if lost_forward > 0.0 {
         attempts as f64 / lost_forward
@@ -634,6 +639,36 @@ const OTHER_LENS_RETRY_FRAMES: usize = 3;
 /// percentile up to 56 mm) and 0.1-0.6° from the front's own poses (the two maps' metric
 /// recovery and the placement over several metres), which at the front lens's 0.4-1 m is 2-6°.
 pub const OTHER_LENS_RADIUS_RAD: f64 = 0.1;
+
+/// Why a frame of [`localize_around`] has no pose to search around.
+const NOTHING_TO_SEARCH_AROUND: &str = "not tried: no pose to search around";
+
+/// Localize the frames of `stream` only around the poses `around` gives (per frame
+/// `map_from_cam`; `None` leaves the frame lost), as around the other lens's pose
+/// ([`from_other_lens`]: guided matching, then tracking), without place recognition of its own:
+/// whether the lens's view fits the place another source puts it. Frames are tried in order;
+/// the result is deterministic.
+pub fn localize_around(
+    map: &VisualMap,
+    stream: &LensStream,
+    options: &LocalizerOptions,
+    around: &[Option<Pose>],
+) -> Result<Vec<FrameLocalization>> {
+    let localizer = stream_localizer(map, stream, options)?;
+    let why = localizer
+        .refusal()
+        .unwrap_or(NOTHING_TO_SEARCH_AROUND)
+        .to_string();
+    let mut results: Vec<FrameLocalization> = (stream.frames.iter().enumerate())
+        .map(|(i, f)| FrameLocalization::lost(i as u32, f.t, 0, why.clone()))
+        .collect();
+    if localizer.refusal().is_some() {
+        return Ok(results);
+    }
+    let mut book = RunBook::new(results.len());
+    from_other_lens(map, stream, options, around, &mut results, &mut book)?;
+    Ok(results)
+}
 
 /// Added to the reason of a lost frame that was tried around the other lens's pose in vain.
 const OTHER_LENS_NOT_FOUND: &str = "; around the other lens's pose: not found either";
@@ -728,8 +763,21 @@ fn withdraw_look_alikes(
     if found.is_empty() {
         return Ok(LookAlikes::default());
     }
-    let witnessed = match witness {
-        Some(ask) => Some(ask()?),
+    // A witness that cannot be computed leaves the runs to be judged as without one: it is
+    // evidence the stream can do without, not an input it needs.
+    let mut unavailable = None;
+    let witnessed = match witness.map(|ask| ask()) {
+        Some(Ok(poses)) => Some(poses),
+        Some(Err(e)) => {
+            tracing::warn!(
+                "{}/{}: the other wrist's witness could not be computed ({e}); runs that do \
+                 not join are judged without it",
+                stream.camera_name,
+                stream.lens
+            );
+            unavailable = Some(e.to_string());
+            None
+        }
         None => None,
     };
     let witness_poses = witnessed.as_deref().unwrap_or_default();
@@ -803,6 +851,7 @@ fn withdraw_look_alikes(
         seconds: cost.1,
         kept_by_witness: kept,
         witnessed,
+        witness_unavailable: unavailable,
     })
 }
 
@@ -817,6 +866,8 @@ struct LookAlikes {
     kept_by_witness: usize,
     /// The witness's poses, when it was asked.
     witnessed: Option<Vec<Option<Pose>>>,
+    /// Why the witness, asked, could not be computed.
+    witness_unavailable: Option<String>,
 }
 
 /// Localize the frames still lost around where the witness places the lens (as
