@@ -265,6 +265,13 @@ pub struct PlacementFile {
     pub rms_position_m: f64,
     /// RMS rotation residual of the inliers (deg).
     pub rms_rotation_deg: f64,
+    /// Of `pairs`, those a [`FrontWitness`] gave (the front lens in another wrist's front map).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub witness_pairs: usize,
+}
+
+fn is_zero(n: &usize) -> bool {
+    *n == 0
 }
 
 /// The similarity of a `metric.json`, or the identity when there is none (the map is metric).
@@ -349,8 +356,49 @@ pub fn placement_from_localizations(
     rear_sim: &Sim3,
     config: &PlacementConfig,
 ) -> Result<PlacementFile> {
+    placement_with_witness(
+        front,
+        rear,
+        front_calibration,
+        rear_calibration,
+        front_sim,
+        rear_sim,
+        None,
+        config,
+    )
+}
+
+/// The wrist's front lens seen in another wrist's front map during the mapping episode: where
+/// that map, made metric and placed, puts the front camera in the scene.
+#[derive(Debug, Clone, Copy)]
+pub struct FrontWitness<'a> {
+    /// The front stream's localizations in the other front map (the same frames as the
+    /// stream's own localizations in its own front map).
+    pub rows: &'a [Localization],
+    /// That map's metric similarity (`metric_front_map_from_front_map`).
+    pub other_front_sim: Sim3,
+    /// That map's placement `G` (`scene_from_front_map`, metric).
+    pub scene_from_other_front_map: Pose,
+}
+
+/// [`placement_from_localizations`] with the pairs a [`FrontWitness`] adds: at every frame the
+/// front lens has a pose in both front maps, its own front map's pose against the scene pose the
+/// other map gives (eq. 2 with the other wrist's map and placement standing in for the rear
+/// map). Both kinds of pairs enter one robust fit, so a rear stream that saw a distorted part
+/// of the scene map, or only a few frames, does not alone decide where the front map stands.
+#[allow(clippy::too_many_arguments)]
+pub fn placement_with_witness(
+    front: &[Localization],
+    rear: &[Localization],
+    front_calibration: &LensImuCalibration,
+    rear_calibration: &LensImuCalibration,
+    front_sim: &Sim3,
+    rear_sim: &Sim3,
+    witness: Option<FrontWitness<'_>>,
+    config: &PlacementConfig,
+) -> Result<PlacementFile> {
     let rear_from_front = rear_calibration.cam_from_imu * front_calibration.cam_from_imu.inverse();
-    let pairs = pair_up(
+    let mut pairs = pair_up(
         front,
         rear,
         front_calibration.time_shift_s,
@@ -358,10 +406,22 @@ pub fn placement_from_localizations(
         front_sim,
         rear_sim,
     );
+    let rear_pairs = pairs.len();
+    if let Some(w) = witness {
+        pairs.extend(witness_pairs(
+            front,
+            &w,
+            front_calibration.time_shift_s,
+            front_sim,
+            &rear_from_front,
+        ));
+        pairs.sort_by(|a, b| a.t.total_cmp(&b.t));
+    }
+    let witness_pairs = pairs.len() - rear_pairs;
     let p = place(&pairs, &rear_from_front, config).map_err(|e| {
         BackendError::Estimation(format!(
-            "{e} ({} synchronized pairs of valid front and rear localizations)",
-            pairs.len()
+            "{e} ({rear_pairs} synchronized pairs of valid front and rear localizations, \
+             {witness_pairs} of the front lens in both front maps)",
         ))
     })?;
     let q = p.scene_from_front_map.rotation;
@@ -377,5 +437,42 @@ pub fn placement_from_localizations(
         inliers: p.inliers,
         rms_position_m: p.rms_position_m,
         rms_rotation_deg: p.rms_rotation_rad.to_degrees(),
+        witness_pairs,
     })
 }
+
+/// The placement pairs of a [`FrontWitness`]: at each frame with a pose in both front maps
+/// (matched by timestamp), the front camera in its own metric front map, and the rear camera's
+/// scene pose that the other map's front pose implies (`scene_from_front · rear_from_front⁻¹`,
+/// so that [`place`]'s `scene_from_rear · E_a` is the witness's front pose).
+fn witness_pairs(
+    front: &[Localization],
+    witness: &FrontWitness<'_>,
+    front_shift: f64,
+    front_sim: &Sim3,
+    rear_from_front: &Pose,
+) -> Vec<PlacementPair> {
+    let front_from_rear = rear_from_front.inverse();
+    let seen: Vec<&Localization> = witness.rows.iter().filter(|r| r.valid).collect();
+    front
+        .iter()
+        .filter(|f| f.valid)
+        .filter_map(|f| {
+            let k = seen.partition_point(|r| r.t < f.t - WITNESS_SAME_FRAME_S);
+            let w = seen
+                .get(k)
+                .filter(|r| (r.t - f.t).abs() <= WITNESS_SAME_FRAME_S)?;
+            let scene_from_front = witness.scene_from_other_front_map
+                * apply(&witness.other_front_sim, &w.map_from_cam);
+            Some(PlacementPair {
+                t: f.t + front_shift,
+                front_map_from_front: apply(front_sim, &f.map_from_cam),
+                scene_from_rear: scene_from_front * front_from_rear,
+            })
+        })
+        .collect()
+}
+
+/// Largest timestamp difference (s) of two rows that are the same frame of one stream: rows
+/// round-trip through text, so equal times may differ in the last digits.
+const WITNESS_SAME_FRAME_S: f64 = 1e-6;

@@ -7,7 +7,8 @@
 //! `placement-<wrist>` (`G_a`, eq. 2). The mapping episode's rear stream of the wrist that did not
 //! build the rear map also reads, optionally, the map wrist's front map, metric recoveries and
 //! placement: the witness that decides between its runs where they do not join
-//! ([`rear_witness_deps`]).
+//! ([`rear_witness_deps`]); that wrist's `placement-<wrist>` reads the same, and pools the
+//! witness's pairs into its fit.
 //!
 //! Per episode, once the maps are frozen: `sync` → `localize-<wrist>-<lens>` (four streams, no map
 //! updates; after the map episode a front stream also starts from the poses its wrist's rear
@@ -340,6 +341,9 @@ pub fn build(ctx: &SessionContext, episodes: &[String]) -> Vec<StageNode> {
             side,
             lens: Lens::Rear,
         } if *episode == map_ep => rear_witness_deps(ctx, *side),
+        // The wrist that did not build the rear map pools the other wrist's front map into its
+        // placement.
+        StageKind::Placement { side } => rear_witness_deps(ctx, *side),
         // Where a wrist's two lenses disagree, the other wrist's front map is the third vote.
         StageKind::Observations { side, .. } => other_front_map_deps(ctx, *side),
         StageKind::Outputs { episode } => outputs_optional_deps(ctx, episode),

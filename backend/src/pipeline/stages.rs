@@ -20,7 +20,7 @@ use super::stage::{InputDigest, Manifest, StageId};
 use crate::error::{BackendError, Result};
 use crate::export::ExportFormat;
 use crate::formats::results::{
-    MetricFile, PlacementFile, metric_from_localizations, placement_from_localizations,
+    FrontWitness, MetricFile, PlacementFile, metric_from_localizations, placement_with_witness,
     read_metric, read_placement, write_json,
 };
 use crate::formats::tables::{
@@ -39,7 +39,7 @@ use crate::vision::episode::{
     LensStream, Witness, build_map_with, localize_around, localize_stream,
     localize_stream_with_witness, write_poses_csv,
 };
-use crate::vision::localize::LocalizerOptions;
+use crate::vision::localize::{FrameLocalization, LocalizerOptions};
 use crate::vision::map::VisualMap;
 
 /// Called by a stage as it progresses: `(done, total)` in the stage's own units (frames).
@@ -77,8 +77,8 @@ pub fn version(kind: &StageKind) -> &'static str {
         StageKind::Tool { .. } => "tool-1",
         StageKind::Localize { .. } => "localize-12",
         StageKind::Metric { .. } => "metric-2",
-        StageKind::Placement { .. } => "placement-2",
-        StageKind::Observations { .. } => "observations-3",
+        StageKind::Placement { .. } => "placement-3",
+        StageKind::Observations { .. } => "observations-4",
         StageKind::Fusion { .. } => "fusion-4",
         StageKind::Gripper { .. } => "gripper-1",
         StageKind::Head { .. } => "head-2",
@@ -804,7 +804,11 @@ pub fn rear_witnessed(ctx: &SessionContext, episode: &str, side: Side, lens: Len
 /// ([`rear_poses_from_other_front_map`]).
 fn rear_witness(env: &StageEnv<'_>, side: Side, rear_times: &[f64]) -> Result<Vec<Option<Pose>>> {
     let map_ep = env.ctx.session.map_episode.clone();
-    let rows = front_in_other_front_map(env, &map_ep, side, "the witness of the rear lens's runs")?;
+    let results =
+        front_in_other_front_map(env, &map_ep, side, "the witness of the rear lens's runs")?;
+    // Kept for the placement, which pools the same witness.
+    write_poses_csv(&env.out.join(WITNESS_FILE), &results)?;
+    let rows = valid_rows(&results);
     let w = wrist(env.ctx, side)?;
     let other = scene_reference(env.ctx, side.other())?;
     Ok(rear_poses_from_other_front_map(
@@ -819,7 +823,7 @@ fn front_in_other_front_map(
     episode: &str,
     side: Side,
     why: &str,
-) -> Result<Vec<Localization>> {
+) -> Result<Vec<FrameLocalization>> {
     let other = side.other();
     let map = VisualMap::load(
         &env.dep_dir(&StageKind::Map {
@@ -837,14 +841,41 @@ fn front_in_other_front_map(
         summary.frames,
         other.camera_name()
     );
-    Ok(results
-        .iter()
+    Ok(results)
+}
+
+/// Per-frame localizations as the rows the estimation stages read.
+fn valid_rows(results: &[FrameLocalization]) -> Vec<Localization> {
+    (results.iter())
         .map(|r| Localization {
             t: r.t,
             valid: r.map_from_cam.is_some(),
             map_from_cam: r.map_from_cam.unwrap_or_else(Pose::identity),
         })
-        .collect())
+        .collect()
+}
+
+/// `witness.csv` of the mapping episode's rear stage of a wrist that did not build the rear
+/// map, when it asked the witness: the wrist's front stream in the other wrist's front map
+/// (the `poses.csv` format).
+pub const WITNESS_FILE: &str = "witness.csv";
+
+/// The placement's [`FrontWitness`] rows of `side`: the mapping episode's front stream in the
+/// other wrist's front map, as the rear stage kept it when it asked, or localized now.
+fn placement_witness_rows(env: &StageEnv<'_>, side: Side) -> Result<Vec<Localization>> {
+    let map_ep = env.ctx.session.map_episode.clone();
+    let kept = env
+        .dep_dir(&StageKind::Localize {
+            episode: map_ep.clone(),
+            side,
+            lens: Lens::Rear,
+        })
+        .join(WITNESS_FILE);
+    if kept.is_file() {
+        return read_localizations(&kept);
+    }
+    let results = front_in_other_front_map(env, &map_ep, side, "pooled into its placement")?;
+    Ok(valid_rows(&results))
 }
 
 /// The pipeline's [`RunArbiter`] for one wrist in one episode: its lenses' frames localized
@@ -892,13 +923,7 @@ impl StageArbiter<'_, '_> {
         let around: Vec<Option<Pose>> = keep.iter().map(|&i| around[i]).collect();
         stream.select(&keep)?;
         let results = localize_around(&map, &stream, &LocalizerOptions::default(), &around)?;
-        let rows: Vec<Localization> = (results.iter())
-            .map(|r| Localization {
-                t: r.t,
-                valid: r.map_from_cam.is_some(),
-                map_from_cam: r.map_from_cam.unwrap_or_else(Pose::identity),
-            })
-            .collect();
+        let rows = valid_rows(&results);
         let (front, rear) = match lens {
             Lens::Front => (rows.as_slice(), &[][..]),
             Lens::Rear => (&[][..], rows.as_slice()),
@@ -961,12 +986,12 @@ fn observation_witness(
     exposure_centre_s: f64,
 ) -> Option<Vec<PoseObservation>> {
     let make = || -> Result<Vec<PoseObservation>> {
-        let rows = front_in_other_front_map(
+        let rows = valid_rows(&front_in_other_front_map(
             env,
             episode,
             side,
             "the third vote where its front and rear lenses disagree",
-        )?;
+        )?);
         let w = wrist(env.ctx, side)?;
         let other = scene_reference(env.ctx, side.other())?;
         Ok(observations_in_other_front_map(
@@ -1052,7 +1077,7 @@ struct LensAgreement {
 /// [`LensAgreement`] of `results` with `predicted` (`map_from_cam` per frame); `None` without
 /// a frame that has both.
 fn other_lens_agreement(
-    results: &[crate::vision::localize::FrameLocalization],
+    results: &[FrameLocalization],
     predicted: &[Option<Pose>],
 ) -> Option<LensAgreement> {
     let (mut distances, mut angles): (Vec<f64>, Vec<f64>) = results
@@ -1135,13 +1160,39 @@ fn run_placement(env: &StageEnv<'_>, side: Side) -> Result<()> {
     let path = env.dep_dir(&StageKind::Metric {
         map: MapName::Front(side),
     });
-    let file = placement_from_localizations(
+    // The wrist that did not build the rear map also has its front lens seen in the other
+    // wrist's front map: pooled in, when that map and its placement are there.
+    let witness_deps = super::graph::rear_witness_deps(env.ctx, side);
+    let witness = if !witness_deps.is_empty() && env.available(&witness_deps) {
+        match (
+            placement_witness_rows(env, side),
+            scene_reference(env.ctx, side.other()),
+        ) {
+            (Ok(rows), Ok(other)) => Some((rows, other)),
+            (Err(e), _) | (_, Err(e)) => {
+                tracing::warn!(
+                    "placement of the {} front map: the other wrist's front map could not \
+                     witness it ({e}); placed from the rear lens alone",
+                    side.camera_name()
+                );
+                None
+            }
+        }
+    } else {
+        None
+    };
+    let file = placement_with_witness(
         &front,
         &rear,
         &w.front,
         &w.rear,
         &front_metric.world_from_map.to_sim3(&path)?,
         &rear_metric.world_from_map.to_sim3(&path)?,
+        witness.as_ref().map(|(rows, other)| FrontWitness {
+            rows,
+            other_front_sim: other.front_metric,
+            scene_from_other_front_map: other.scene_from_front_map,
+        }),
         &PlacementConfig::default(),
     )
     .map_err(|e| {
