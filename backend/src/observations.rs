@@ -944,6 +944,21 @@ mod tests {
         }
     }
 
+    /// Check that `counts` withdrew exactly one run, of `lens`, with a reason holding `why`,
+    /// and kept the other lens's 60 observations.
+    fn assert_one_run_withdrawn(counts: &ObservationCounts, lens: &str, why: &str) {
+        assert_eq!(
+            counts.withdrawn_runs.len(),
+            1,
+            "{:?}",
+            counts.withdrawn_runs
+        );
+        let run = &counts.withdrawn_runs[0];
+        assert_eq!(run.lens, lens);
+        assert!(run.reason.contains(why), "{}", run.reason);
+        assert_eq!(counts.front_observations + counts.rear_observations, 60);
+    }
+
     fn arbitrate(
         front: &[Localization],
         rear: &[Localization],
@@ -977,16 +992,7 @@ mod tests {
                 Source::Front => (&look_alike, &right, Arbiter::new(repeating, unique, None)),
             };
             let counts = arbitrate(front, rear, &mut arbiter);
-            assert_eq!(
-                counts.withdrawn_runs.len(),
-                1,
-                "{:?}",
-                counts.withdrawn_runs
-            );
-            let run = &counts.withdrawn_runs[0];
-            assert_eq!(run.lens, repeats.name());
-            assert!(run.reason.contains("(60 of 60 moments"), "{}", run.reason);
-            assert_eq!(counts.front_observations + counts.rear_observations, 60);
+            assert_one_run_withdrawn(&counts, repeats.name(), "(60 of 60 moments");
             let record = counts.arbitration.expect("arbitrated");
             assert_eq!((record.decided_by_cross_fit, record.undecided), (1, 0));
             assert_eq!((arbiter.localized, arbiter.witnessed), (2, 0));
@@ -1011,20 +1017,7 @@ mod tests {
             for fits in [[0.0, 0.3].as_slice(), &[]] {
                 let mut arbiter = Arbiter::new(fits, fits, Some(&witness));
                 let counts = arbitrate(front, rear, &mut arbiter);
-                assert_eq!(
-                    counts.withdrawn_runs.len(),
-                    1,
-                    "{:?}",
-                    counts.withdrawn_runs
-                );
-                let run = &counts.withdrawn_runs[0];
-                assert_eq!(run.lens, withdrawn);
-                assert!(
-                    run.reason.contains("other wrist's front map"),
-                    "{}",
-                    run.reason
-                );
-                assert_eq!(counts.front_observations + counts.rear_observations, 60);
+                assert_one_run_withdrawn(&counts, withdrawn, "other wrist's front map");
                 let record = counts.arbitration.expect("arbitrated");
                 assert_eq!(record.witness_observations, Some(54));
                 assert_eq!((record.decided_by_witness, record.undecided), (1, 0));

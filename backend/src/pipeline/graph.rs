@@ -219,6 +219,12 @@ pub fn other_front_map_deps(ctx: &SessionContext, side: Side) -> Vec<StageId> {
     ]
 }
 
+/// `stages` without the rear map's metric recovery (for a stage that cannot do without it).
+fn without_rear_metric(stages: Vec<StageId>) -> Vec<StageId> {
+    let rear = id_of(&StageKind::Metric { map: MapName::Rear });
+    stages.into_iter().filter(|s| *s != rear).collect()
+}
+
 /// The id of a stage kind.
 pub fn id_of(kind: &StageKind) -> StageId {
     match kind {
@@ -342,20 +348,19 @@ pub fn build(ctx: &SessionContext, episodes: &[String]) -> Vec<StageNode> {
             lens: Lens::Rear,
         } if *episode == map_ep => rear_witness_deps(ctx, *side),
         // The wrist that did not build the rear map pools the other wrist's front map into its
-        // placement.
-        StageKind::Placement { side } => rear_witness_deps(ctx, *side),
+        // placement; both stages need the rear map's metric recovery anyway.
+        StageKind::Placement { side } => without_rear_metric(rear_witness_deps(ctx, *side)),
         // Where a wrist's two lenses disagree, the other wrist's front map is the third vote.
-        StageKind::Observations { side, .. } => other_front_map_deps(ctx, *side),
+        StageKind::Observations { side, .. } => {
+            without_rear_metric(other_front_map_deps(ctx, *side))
+        }
         StageKind::Outputs { episode } => outputs_optional_deps(ctx, episode),
         _ => Vec::new(),
     };
     let mut push = |kind: StageKind, deps: Vec<StageId>| {
         let id = id_of(&kind);
         if !nodes.iter().any(|n| n.id == id) {
-            // A stage the node needs anyway is not one it can do without.
-            let optional: Vec<StageId> = (optional_of(&kind).into_iter())
-                .filter(|o| !deps.contains(o))
-                .collect();
+            let optional = optional_of(&kind);
             let mut deps = deps;
             for o in &optional {
                 if !deps.contains(o) {
