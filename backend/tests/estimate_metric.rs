@@ -327,6 +327,61 @@ fn metric_and_place_commands() {
     let (pairs, inliers) = (v["pairs"].as_u64().unwrap(), v["inliers"].as_u64().unwrap());
     assert!(pairs > 6000 && inliers as f64 > 0.9 * pairs as f64);
     assert!(v["rms_position_m"].as_f64().unwrap() < 6e-3);
+    // The same front stream seen through a front map already placed (here its own, with the
+    // placement just made) witnesses the same placement: pooled in, the fit stays put and counts
+    // the witness's pairs; the witness without its map's metric and placement is refused.
+    let place_with = |extra: &[&str]| {
+        let mut a = vec![
+            "place".to_string(),
+            "--front".into(),
+            d("front.csv"),
+            "--rear".into(),
+            d("rear.csv"),
+            "--calibration".into(),
+            d("calibration.json"),
+            "--front-metric".into(),
+            d("front-metric.json"),
+            "--rear-metric".into(),
+            d("rear-metric.json"),
+            "--out".into(),
+            d("pooled.json"),
+            "--json".into(),
+        ];
+        a.extend(extra.iter().map(ToString::to_string));
+        kiwi(&a.iter().map(String::as_str).collect::<Vec<_>>())
+    };
+    let out = place_with(&[
+        "--witness",
+        &d("front.csv"),
+        "--witness-metric",
+        &d("front-metric.json"),
+        "--witness-placement",
+        &d("placement.json"),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let w: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let translation = |v: &serde_json::Value| -> Vector3<f64> {
+        let t = &v["scene_from_front_map"]["translation_m"];
+        Vector3::from_fn(|i, _| t[i].as_f64().unwrap())
+    };
+    let moved = (translation(&w) - translation(&v)).norm();
+    let witness_pairs = w["witness_pairs"].as_u64().unwrap();
+    eprintln!(
+        "pooled with the witness: moved {:.3} mm, {witness_pairs} witness pairs",
+        moved * 1e3
+    );
+    assert!(moved < 1e-3, "{moved}");
+    assert!(witness_pairs > 6000 && w["pairs"].as_u64().unwrap() == pairs + witness_pairs);
+    let out = place_with(&["--witness", &d("front.csv")]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && err.contains("--witness-metric"),
+        "{err}"
+    );
     // A poses file without the status column is refused with the column named.
     std::fs::write(d("bad.csv"), "t,px,py,pz,qx,qy,qz,qw\n0,0,0,0,0,0,0,1\n").unwrap();
     let out = kiwi(&[

@@ -8,7 +8,8 @@ use anyhow::Result;
 use anyhow::Context;
 use kiwi_backend::formats::calibration::{exposure_centre_delay, imu_params, lens_calibration};
 use kiwi_backend::formats::results::{
-    metric_from_localizations, metric_of, placement_from_localizations, write_json,
+    FrontWitness, metric_from_localizations, metric_of, placement_with_witness, read_placement,
+    write_json,
 };
 use kiwi_backend::formats::tables::read_localizations;
 use kiwi_backend::metric::MetricConfig;
@@ -16,6 +17,7 @@ use kiwi_backend::placement::PlacementConfig;
 use kiwi_core::artifact::UnitCalibration;
 use kiwi_core::imu::ImuSeries;
 use kiwi_core::layout::CameraMeta;
+use nalgebra::{Isometry3, Translation3};
 
 /// Arguments of `kiwi metric`.
 #[derive(Debug, clap::Args)]
@@ -72,6 +74,17 @@ pub struct PlaceArgs {
     /// metric.json of the scene map, applied to the rear poses first.
     #[arg(long)]
     pub rear_metric: Option<PathBuf>,
+    /// The same front stream's poses.csv in another wrist's front map: pooled into the fit as
+    /// a witness of where the front camera stands in the scene (what `kiwi run` does for the
+    /// wrist that did not build the scene map). Needs --witness-metric and --witness-placement.
+    #[arg(long, requires_all = ["witness_metric", "witness_placement"])]
+    pub witness: Option<PathBuf>,
+    /// metric.json of the other wrist's front map (for --witness).
+    #[arg(long, requires = "witness")]
+    pub witness_metric: Option<PathBuf>,
+    /// placement.json of the other wrist's front map (for --witness).
+    #[arg(long, requires = "witness")]
+    pub witness_placement: Option<PathBuf>,
     /// Output placement.json (scene_from_front_map and inlier statistics).
     #[arg(long)]
     pub out: PathBuf,
@@ -193,13 +206,30 @@ pub fn run_place_cmd(args: &PlaceArgs) -> Result<()> {
     let rear = read_localizations(&args.rear)?;
     let front_sim = metric_of(args.front_metric.as_deref())?;
     let rear_sim = metric_of(args.rear_metric.as_deref())?;
-    let file = placement_from_localizations(
+    let witness = match (&args.witness, &args.witness_metric, &args.witness_placement) {
+        (Some(rows), Some(metric), Some(placement)) => {
+            let g = read_placement(placement)?;
+            let g = g.scene_from_front_map.to_sim3(placement)?;
+            Some((
+                read_localizations(rows)?,
+                metric_of(Some(metric))?,
+                Isometry3::from_parts(Translation3::from(g.translation), g.rotation),
+            ))
+        }
+        _ => None,
+    };
+    let file = placement_with_witness(
         &front,
         &rear,
         &front_cal,
         &rear_cal,
         &front_sim,
         &rear_sim,
+        witness.as_ref().map(|(rows, sim, g)| FrontWitness {
+            rows,
+            other_front_sim: *sim,
+            scene_from_other_front_map: *g,
+        }),
         &PlacementConfig::default(),
     )
     .with_context(|| format!("{}", args.front.display()))?;
@@ -208,9 +238,11 @@ pub fn run_place_cmd(args: &PlaceArgs) -> Result<()> {
         println!("{}", serde_json::to_string(&file)?);
     } else {
         println!(
-            "placed the front map: {} of {} pairs inliers, RMS {:.2} mm / {:.3}° -> {}",
+            "placed the front map: {} of {} pairs inliers ({} from the witness), RMS {:.2} mm / \
+             {:.3}° -> {}",
             file.inliers,
             file.pairs,
+            file.witness_pairs,
             file.rms_position_m * 1e3,
             file.rms_rotation_deg,
             args.out.display()
