@@ -231,20 +231,15 @@ pub fn front_poses_from_rear(
         scene_from_imu: apply(&reference.rear_metric, &r.map_from_cam)
             * rear_calibration.cam_from_imu,
     });
-    let front_map_from_metric = reference.front_metric.inverse();
-    let imu_from_front_cam = front_calibration.cam_from_imu.inverse();
-    let front_map_from_scene = reference.scene_from_front_map.inverse();
-    let mut j = 0usize;
-    front_times
-        .iter()
-        .map(|&t_cam| {
-            let t = t_cam + front_calibration.time_shift_s;
-            let nearest = nearest_at(&rear_obs, &mut j, t)?;
-            let metric_map_from_cam =
-                front_map_from_scene * nearest.observation.scene_from_imu * imu_from_front_cam;
-            Some(apply(&front_map_from_metric, &metric_map_from_cam))
-        })
-        .collect()
+    let rear_obs: Vec<PoseObservation> = rear_obs.into_iter().map(|o| o.observation).collect();
+    lens_poses_at(
+        front_times,
+        &rear_obs,
+        Source::Front,
+        reference,
+        front_calibration,
+        0.0,
+    )
 }
 
 /// Eq. 3 solved for either lens: its `map_from_cam` in its own (unscaled) map at each of
@@ -300,19 +295,16 @@ pub fn rear_poses_from_other_front_map(
     front_calibration: &LensImuCalibration,
     rear_calibration: &LensImuCalibration,
 ) -> Vec<Option<Pose>> {
-    let front_obs = other_front_map_observations(front_in_other_map, other, front_calibration, 0.0);
-    let rear_map_from_scene = other.rear_metric.inverse();
-    let imu_from_rear_cam = rear_calibration.cam_from_imu.inverse();
-    let mut j = 0usize;
-    rear_times
-        .iter()
-        .map(|&t_cam| {
-            let t = t_cam + rear_calibration.time_shift_s;
-            let nearest = nearest_at(&front_obs, &mut j, t)?;
-            let scene_from_cam = nearest.observation.scene_from_imu * imu_from_rear_cam;
-            Some(apply(&rear_map_from_scene, &scene_from_cam))
-        })
-        .collect()
+    let front_obs =
+        observations_in_other_front_map(front_in_other_map, other, front_calibration, 0.0);
+    lens_poses_at(
+        rear_times,
+        &front_obs,
+        Source::Rear,
+        other,
+        rear_calibration,
+        0.0,
+    )
 }
 
 /// Eq. 3 for a wrist's front lens seen in another wrist's front map (`front_in_other_map`,
@@ -326,23 +318,6 @@ pub fn observations_in_other_front_map(
     front_calibration: &LensImuCalibration,
     exposure_centre_s: f64,
 ) -> Vec<PoseObservation> {
-    other_front_map_observations(
-        front_in_other_map,
-        other,
-        front_calibration,
-        exposure_centre_s,
-    )
-    .into_iter()
-    .map(|o| o.observation)
-    .collect()
-}
-
-fn other_front_map_observations(
-    front_in_other_map: &[Localization],
-    other: &SceneReference,
-    front_calibration: &LensImuCalibration,
-    exposure_centre_s: f64,
-) -> Vec<RunObservation> {
     lens_observations(front_in_other_map, |r| PoseObservation {
         t: r.t + front_calibration.time_shift_s + exposure_centre_s,
         source: Source::Front,
@@ -350,6 +325,9 @@ fn other_front_map_observations(
             * apply(&other.front_metric, &r.map_from_cam)
             * front_calibration.cam_from_imu,
     })
+    .into_iter()
+    .map(|o| o.observation)
+    .collect()
 }
 
 /// The observation of `obs` (sorted by time) nearest `t` within [`PAIR_TOLERANCE_S`]; `j` is
@@ -567,13 +545,18 @@ fn cross_check(
             "the front and rear lenses disagree by {median:.3} m (median) and no other run tells \
              which is right: one of them was localized at a look-alike place"
         );
+        // Withdraw this pair's run of `source`.
+        let mut withdraw_lens = |source: Source, why: String| match source {
+            Source::Front => withdraw(Source::Front, f, front, why),
+            Source::Rear => withdraw(Source::Rear, r, rear, why),
+        };
         match (front_vouched, rear_vouched) {
-            (false, true) => withdraw(Source::Front, f, front, vouched_against(Source::Front)),
-            (true, false) => withdraw(Source::Rear, r, rear, vouched_against(Source::Rear)),
+            (false, true) => withdraw_lens(Source::Front, vouched_against(Source::Front)),
+            (true, false) => withdraw_lens(Source::Rear, vouched_against(Source::Rear)),
             _ => {
                 let Some(arbiter) = arbiter.as_deref_mut() else {
-                    withdraw(Source::Front, f, front, undecided.clone());
-                    withdraw(Source::Rear, r, rear, undecided);
+                    withdraw_lens(Source::Front, undecided.clone());
+                    withdraw_lens(Source::Rear, undecided);
                     continue;
                 };
                 let record = arbitration.get_or_insert_with(Arbitration::default);
@@ -601,20 +584,16 @@ fn cross_check(
                         kept.tried,
                     )
                 };
-                match (front_there.fits(), rear_there.fits()) {
-                    (false, true) => {
-                        record.decided_by_cross_fit += 1;
-                        let why = fits_both(Source::Rear, front_there, rear_there);
-                        withdraw(Source::Rear, r, rear, why);
-                        continue;
-                    }
-                    (true, false) => {
-                        record.decided_by_cross_fit += 1;
-                        let why = fits_both(Source::Front, rear_there, front_there);
-                        withdraw(Source::Front, f, front, why);
-                        continue;
-                    }
-                    _ => {}
+                // The lens that fits both places loses, with (kept, withdrawn) evidence.
+                let repeats = match (front_there.fits(), rear_there.fits()) {
+                    (false, true) => Some((Source::Rear, front_there, rear_there)),
+                    (true, false) => Some((Source::Front, rear_there, front_there)),
+                    _ => None,
+                };
+                if let Some((lens, kept, withdrawn)) = repeats {
+                    record.decided_by_cross_fit += 1;
+                    withdraw_lens(lens, fits_both(lens, kept, withdrawn));
+                    continue;
                 }
                 // Then the witness, asked once, as the third vote.
                 if witnessed.is_none() {
@@ -641,26 +620,19 @@ fn cross_check(
                         other(source)
                     )
                 };
-                match (placed(front, f), placed(rear, r)) {
-                    (Some((df, true)), Some((dr, false))) => {
+                // The lens the witness does not place loses, with (kept, withdrawn) distances.
+                let (df, dr) = (placed(front, f), placed(rear, r));
+                let unplaced = match (df, dr) {
+                    (Some((df, true)), Some((dr, false))) => Some((Source::Rear, df, dr)),
+                    (Some((df, false)), Some((dr, true))) => Some((Source::Front, dr, df)),
+                    _ => None,
+                };
+                match unplaced {
+                    Some((lens, d_kept, d_withdrawn)) => {
                         record.decided_by_witness += 1;
-                        withdraw(
-                            Source::Rear,
-                            r,
-                            rear,
-                            placed_by_witness(Source::Rear, df, dr),
-                        );
+                        withdraw_lens(lens, placed_by_witness(lens, d_kept, d_withdrawn));
                     }
-                    (Some((df, false)), Some((dr, true))) => {
-                        record.decided_by_witness += 1;
-                        withdraw(
-                            Source::Front,
-                            f,
-                            front,
-                            placed_by_witness(Source::Front, dr, df),
-                        );
-                    }
-                    (df, dr) => {
+                    None => {
                         record.undecided += 1;
                         let show = |d: Option<(f64, bool)>| match d {
                             Some((d, _)) => format!("{d:.3} m"),
@@ -678,8 +650,8 @@ fn cross_check(
                             show(df),
                             show(dr)
                         );
-                        withdraw(Source::Front, f, front, why.clone());
-                        withdraw(Source::Rear, r, rear, why);
+                        withdraw_lens(Source::Front, why.clone());
+                        withdraw_lens(Source::Rear, why);
                     }
                 }
             }

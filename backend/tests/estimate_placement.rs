@@ -110,9 +110,7 @@ fn placement_rests_on_the_largest_group_of_pairs_that_agree() {
 #[test]
 fn the_other_wrists_front_map_outvotes_a_rear_stream_on_a_distorted_map() {
     use kiwi_backend::formats::calibration::LensImuCalibration;
-    use kiwi_backend::formats::results::{
-        FrontWitness, apply, placement_from_localizations, placement_with_witness,
-    };
+    use kiwi_backend::formats::results::{FrontWitness, apply, placement_from_localizations};
     use kiwi_backend::formats::tables::Localization;
     use kiwi_backend::vision::align::Sim3;
     use nalgebra::Vector3;
@@ -173,10 +171,10 @@ fn the_other_wrists_front_map_outvotes_a_rear_stream_on_a_distorted_map() {
     let identity = Sim3::identity();
     let config = PlacementConfig::default();
     let alone = placement_from_localizations(
-        &front, &rear, &front_cal, &rear_cal, &identity, &identity, &config,
+        &front, &rear, &front_cal, &rear_cal, &identity, &identity, None, &config,
     )
     .unwrap();
-    let pooled = placement_with_witness(
+    let pooled = placement_from_localizations(
         &front,
         &rear,
         &front_cal,

@@ -8,8 +8,8 @@ use anyhow::Result;
 use anyhow::Context;
 use kiwi_backend::formats::calibration::{exposure_centre_delay, imu_params, lens_calibration};
 use kiwi_backend::formats::results::{
-    FrontWitness, metric_from_localizations, metric_of, placement_with_witness, read_placement,
-    write_json,
+    FrontWitness, metric_from_localizations, metric_of, placement_from_localizations,
+    read_placement, write_json,
 };
 use kiwi_backend::formats::tables::read_localizations;
 use kiwi_backend::metric::MetricConfig;
@@ -218,7 +218,7 @@ pub fn run_place_cmd(args: &PlaceArgs) -> Result<()> {
         }
         _ => None,
     };
-    let file = placement_with_witness(
+    let file = placement_from_localizations(
         &front,
         &rear,
         &front_cal,

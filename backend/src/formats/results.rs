@@ -345,29 +345,6 @@ pub fn read_placement(path: &Path) -> Result<PlacementFile> {
     Ok(file)
 }
 
-/// Scene placement `G_a` of a front map (paper eq. 2) from the mapping episode's front and rear
-/// localizations of one unit, made metric by their maps' similarities.
-pub fn placement_from_localizations(
-    front: &[Localization],
-    rear: &[Localization],
-    front_calibration: &LensImuCalibration,
-    rear_calibration: &LensImuCalibration,
-    front_sim: &Sim3,
-    rear_sim: &Sim3,
-    config: &PlacementConfig,
-) -> Result<PlacementFile> {
-    placement_with_witness(
-        front,
-        rear,
-        front_calibration,
-        rear_calibration,
-        front_sim,
-        rear_sim,
-        None,
-        config,
-    )
-}
-
 /// The wrist's front lens seen in another wrist's front map during the mapping episode: where
 /// that map, made metric and placed, puts the front camera in the scene.
 #[derive(Debug, Clone, Copy)]
@@ -381,13 +358,14 @@ pub struct FrontWitness<'a> {
     pub scene_from_other_front_map: Pose,
 }
 
-/// [`placement_from_localizations`] with the pairs a [`FrontWitness`] adds: at every frame the
-/// front lens has a pose in both front maps, its own front map's pose against the scene pose the
-/// other map gives (eq. 2 with the other wrist's map and placement standing in for the rear
+/// Scene placement `G_a` of a front map (paper eq. 2) from the mapping episode's front and rear
+/// localizations of one unit, made metric by their maps' similarities; with a [`FrontWitness`],
+/// also the pairs it adds: at every frame the front lens has a pose in both front maps, its own
+/// front map's pose against the scene pose the other map gives (eq. 2 with the other wrist's map and placement standing in for the rear
 /// map). Both kinds of pairs enter one robust fit, so a rear stream that saw a distorted part
 /// of the scene map, or only a few frames, does not alone decide where the front map stands.
 #[allow(clippy::too_many_arguments)]
-pub fn placement_with_witness(
+pub fn placement_from_localizations(
     front: &[Localization],
     rear: &[Localization],
     front_calibration: &LensImuCalibration,

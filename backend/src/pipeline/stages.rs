@@ -20,8 +20,8 @@ use super::stage::{InputDigest, Manifest, StageId};
 use crate::error::{BackendError, Result};
 use crate::export::ExportFormat;
 use crate::formats::results::{
-    FrontWitness, MetricFile, PlacementFile, metric_from_localizations, placement_with_witness,
-    read_metric, read_placement, write_json,
+    FrontWitness, MetricFile, PlacementFile, metric_from_localizations,
+    placement_from_localizations, read_metric, read_placement, write_json,
 };
 use crate::formats::tables::{
     Localization, read_fused, read_localizations, read_observations, write_fused,
@@ -860,22 +860,28 @@ fn valid_rows(results: &[FrameLocalization]) -> Vec<Localization> {
 /// (the `poses.csv` format).
 pub const WITNESS_FILE: &str = "witness.csv";
 
-/// The placement's [`FrontWitness`] rows of `side`: the mapping episode's front stream in the
-/// other wrist's front map, as the rear stage kept it when it asked, or localized now.
-fn placement_witness_rows(env: &StageEnv<'_>, side: Side) -> Result<Vec<Localization>> {
-    let map_ep = env.ctx.session.map_episode.clone();
+/// The front stream of `side` in `episode` in the other wrist's front map (`why` says what
+/// for, in the log): in the mapping episode as that episode's rear stage kept it when it asked
+/// ([`WITNESS_FILE`]), else localized now.
+fn witness_rows(
+    env: &StageEnv<'_>,
+    episode: &str,
+    side: Side,
+    why: &str,
+) -> Result<Vec<Localization>> {
     let kept = env
         .dep_dir(&StageKind::Localize {
-            episode: map_ep.clone(),
+            episode: episode.to_string(),
             side,
             lens: Lens::Rear,
         })
         .join(WITNESS_FILE);
-    if kept.is_file() {
+    if episode == env.ctx.session.map_episode && kept.is_file() {
         return read_localizations(&kept);
     }
-    let results = front_in_other_front_map(env, &map_ep, side, "pooled into its placement")?;
-    Ok(valid_rows(&results))
+    Ok(valid_rows(&front_in_other_front_map(
+        env, episode, side, why,
+    )?))
 }
 
 /// The pipeline's [`RunArbiter`] for one wrist in one episode: its lenses' frames localized
@@ -986,12 +992,12 @@ fn observation_witness(
     exposure_centre_s: f64,
 ) -> Option<Vec<PoseObservation>> {
     let make = || -> Result<Vec<PoseObservation>> {
-        let rows = valid_rows(&front_in_other_front_map(
+        let rows = witness_rows(
             env,
             episode,
             side,
             "the third vote where its front and rear lenses disagree",
-        )?);
+        )?;
         let w = wrist(env.ctx, side)?;
         let other = scene_reference(env.ctx, side.other())?;
         Ok(observations_in_other_front_map(
@@ -1165,7 +1171,12 @@ fn run_placement(env: &StageEnv<'_>, side: Side) -> Result<()> {
     let witness_deps = super::graph::rear_witness_deps(env.ctx, side);
     let witness = if !witness_deps.is_empty() && env.available(&witness_deps) {
         match (
-            placement_witness_rows(env, side),
+            witness_rows(
+                env,
+                &env.ctx.session.map_episode,
+                side,
+                "pooled into its placement",
+            ),
             scene_reference(env.ctx, side.other()),
         ) {
             (Ok(rows), Ok(other)) => Some((rows, other)),
@@ -1181,7 +1192,7 @@ fn run_placement(env: &StageEnv<'_>, side: Side) -> Result<()> {
     } else {
         None
     };
-    let file = placement_with_witness(
+    let file = placement_from_localizations(
         &front,
         &rear,
         &w.front,
